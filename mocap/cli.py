@@ -1,0 +1,64 @@
+"""The ``mocap`` command line.
+
+Each subcommand lives in ``mocap.commands.<name>`` and exposes ``DESCRIPTION`` (with an
+example), ``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only when
+their command runs, so ``mocap --help`` stays fast (rerun and matplotlib are slow to import).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> one-line help; the module mocap.commands.<name> holds the rest.
+COMMANDS: dict[str, str] = {
+    "validate": "check a session directory against the input contract and summarise it",
+    "simulate": "make a virtual capture session with known truth (and optional hidden effects)",
+    "run": "process a session: calibration, reconstruction, analyses, figures, audit",
+}
+
+
+def _module(name: str):
+    return importlib.import_module(f"mocap.commands.{name}")
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The top-level parser; only ``selected``'s module is imported (all when None)."""
+    parser = argparse.ArgumentParser(
+        prog="mocap",
+        description="facemocap: facial motion capture, raw camera exports to a face model.",
+        epilog="Run 'mocap COMMAND --help' for a command's options and an example.",
+    )
+    from mocap import __version__
+
+    parser.add_argument("--version", action="version", version=f"facemocap {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, help_text in COMMANDS.items():
+        if selected is not None and name != selected:
+            sub.add_parser(name, help=help_text)
+            continue
+        module = _module(name)
+        p = sub.add_parser(
+            name,
+            help=help_text,
+            description=module.DESCRIPTION,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        module.add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    selected = next((a for a in argv if a in COMMANDS), None)
+    parser = build_parser(selected)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    return int(_module(args.command).run(args) or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""The composer: one run of a session through every stage, raw to result.
+
+``run_session`` is the only place that joins the stages; each stage is a pure function of the
+previous stages' results, and the returned ``RunResult`` holds every intermediate. Files are
+written atomically under ``OUT_DIR`` per OUTPUTS.md.
+
+Stages (as they land): validate -> calibrate (raw sessions) -> reconstruct -> trials, noise,
+rejections -> analyses and figures -> audit -> Rerun recording.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from mocap import __version__
+from mocap.atomic import write_text
+from mocap.session import Session, load_session
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; ``summary`` is what summary.json holds."""
+
+    session: Session
+    out_dir: Path
+    summary: dict = field(default_factory=dict)
+
+
+def _versions() -> dict:
+    import numpy
+    import pandas
+    import scipy
+
+    return {"facemocap": __version__, "python": platform.python_version(),
+            "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
+
+
+def run_session(session_dir: str | Path, out_dir: str | Path,
+                progress: Callable[[str], None] | None = None) -> RunResult:
+    """Run every available stage on ``session_dir`` and write results into ``out_dir``."""
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    session = load_session(session_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
+
+    counts = {"takes": {}, "rows": 0, "frames": 0}
+    t = time.perf_counter()
+    for take in session.takes:
+        df = session.read_take(take.name)
+        counts["takes"][take.kind] = counts["takes"].get(take.kind, 0) + 1
+        counts["rows"] += len(df)
+        counts["frames"] += int(df["frame"].max()) + 1
+        if take.commands is not None:
+            session.read_commands(take.name)
+    timings["validate_s"] = time.perf_counter() - t
+    say(f"validated {counts['rows']} rows in {timings['validate_s']:.1f} s")
+
+    timings["total_s"] = time.perf_counter() - t0
+    summary = {
+        "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
+                    "dimension": session.dimension, "fps": session.fps,
+                    "cameras": list(session.camera_ids), "dus": list(session.du_ids)},
+        "stages": ["validate"],
+        "versions": _versions(),
+        "timings_s": timings,
+        "counts": counts,
+        "warnings": list(session.warnings),
+    }
+    write_text(out / "summary.json", json.dumps(summary, indent=2))
+    return RunResult(session=session, out_dir=out, summary=summary)

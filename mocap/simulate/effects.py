@@ -1,0 +1,146 @@
+"""Hidden effects: what the true virtual face does beyond the paper's static model.
+
+Each effect has a stable keyword (OUTPUTS.md's effect names), one parameter with a default
+strength, and an equation. It is applied to the true face only; the pipeline never sees it.
+The true response of a take is computed in three stages (``mocap.simulate.motion``):
+
+1. command side, per DU (``c`` command units, on a fine time grid of step ``dt``):
+   - ``deadtime`` L (s):   a(t) = c(t - L)
+   - ``lag`` tau (s):      tau da/dt = c - a   (first-order actuator dynamics, exact for c held
+                           over each sample: a_k = a_{k-1} + (1 - exp(-dt/tau)) (c_{k-1} - a_{k-1}))
+   - ``backlash`` b (command units): a = play_b(c) (a dead band of width 2 b at every reversal,
+                           before the skin's own hysteresis)
+2. static map, per DU and marker: y = normalised logistic of the PI hysteresis of ``a``
+   - ``drift`` k (command units per trial): beta_nm -> beta_nm + k (trial - 1) (the response
+                           shifts as the skin settles over repeated trials)
+3. displacement, per marker, from the DUs' y_n and peak vectors D_nm:
+   - none:                 d_m = sum_n y_n D_nm
+   - ``coupling`` kappa:   d_m = sum_n y_n D_nm (1 - kappa sum_{n' != n} y_n' o_n'm), with
+                           o_n'm = |D_n'm| / max_m |D_n'm| (skin already pulled by one DU yields
+                           less to another: multi-DU action is less than the sum)
+   - ``saturation`` L (mm): d_m -> d_m L tanh(|d_m| / L) / |d_m| (the skin stretches at most
+                           about L)
+   - ``curvature`` kappa:  d_m = sum_n (y_n D_nm + 4 kappa y_n (1 - y_n) |D_nm| b_nm), b_nm the
+                           unit tangent perpendicular to D_nm (paths bow sideways by kappa |D|
+                           at mid-range)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from analysis.hysteresis import play
+
+EFFECTS: dict[str, tuple[str, float, str]] = {
+    # name: (parameter, default strength, unit)
+    "none": ("", 0.0, ""),
+    "lag": ("tau_s", 0.08, "s"),
+    "deadtime": ("delay_s", 0.06, "s"),
+    "backlash": ("halfwidth", 12.0, "command units"),
+    "coupling": ("kappa", 0.35, ""),
+    "drift": ("beta_per_trial", 4.0, "command units per trial"),
+    "saturation": ("limit_mm", 4.0, "mm"),
+    "curvature": ("kappa", 0.3, ""),
+}
+
+MEANINGS = {
+    "none": "no effect beyond the paper's static model with Prandtl-Ishlinskii hysteresis",
+    "lag": "first-order actuator dynamics: the actuator approaches its command with time constant tau",
+    "deadtime": "pure transport delay between command and actuator",
+    "backlash": "mechanical dead band at every command reversal",
+    "coupling": "DUs share skin: a marker pulled by one DU moves less under another",
+    "drift": "the response's bias moves from trial to trial as the skin settles",
+    "saturation": "the skin stretches at most about L: large total displacements flatten",
+    "curvature": "marker paths bow sideways at mid-range instead of running straight",
+}
+
+
+@dataclass(frozen=True)
+class HiddenEffect:
+    """A hidden effect and its strength (see the module docstring for equations)."""
+
+    name: str = "none"
+    strength: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.name not in EFFECTS:
+            raise ValueError(f"hidden effect: expected one of {sorted(EFFECTS)}, got {self.name!r}")
+        if self.strength < 0 or not np.isfinite(self.strength):
+            raise ValueError(f"hidden effect {self.name}: expected strength >= 0, got {self.strength}")
+
+    @classmethod
+    def default(cls, name: str, strength: float | None = None) -> "HiddenEffect":
+        if name not in EFFECTS:
+            raise ValueError(f"hidden effect: expected one of {sorted(EFFECTS)}, got {name!r}")
+        return cls(name, EFFECTS[name][1] if strength is None else float(strength))
+
+    @property
+    def parameter(self) -> str:
+        return EFFECTS[self.name][0]
+
+    def describe(self) -> dict:
+        return {
+            "name": self.name,
+            "strength": self.strength,
+            "parameters": {self.parameter: self.strength} if self.name != "none" else {},
+            "unit": EFFECTS[self.name][2],
+            "meaning": MEANINGS[self.name],
+        }
+
+    # -- stage 1: command side -------------------------------------------------------------
+    def command(self, c: np.ndarray, t: np.ndarray, sampler) -> np.ndarray:
+        """Actuator input (n_samples, n_dus) from commands c sampled at times t (s).
+
+        ``sampler(times) -> (n_samples, n_dus)`` evaluates the command schedule at any times
+        (used by dead time to shift exactly).
+        """
+        if self.name == "deadtime":
+            return sampler(t - self.strength)
+        if self.name == "lag" and self.strength > 0:
+            dt = float(t[1] - t[0]) if t.size > 1 else 1.0
+            g = 1.0 - np.exp(-dt / self.strength)
+            # a_k = (1-g) a_{k-1} + g c_{k-1}, from rest (a_0 = 0): exact zero-order hold
+            from scipy.signal import lfilter
+
+            return lfilter([0.0, g], [1.0, -(1.0 - g)], c, axis=0)
+        if self.name == "backlash":
+            return play(c, self.strength, 0.0)
+        return c
+
+    # -- stage 2: static map -----------------------------------------------------------------
+    def beta_shift(self, trial: int) -> float:
+        if self.name == "drift":
+            return self.strength * (max(int(trial), 1) - 1)
+        return 0.0
+
+    # -- stage 3: displacement -------------------------------------------------------------
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Marker displacements (n_samples, n_markers, 3) mm.
+
+        y : (n_samples, n_dus, n_markers) normalised responses of the take's DUs.
+        D : (n_dus, n_markers, 3) their peak vectors, mm.
+        normals : (n_markers, 3) skin normals (for the sideways direction of ``curvature``).
+        """
+        if self.name == "coupling" and y.shape[1] > 1:
+            mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
+            o = mag / mag.max(axis=1, keepdims=True)
+            yo = y * o[None]  # (S, N, M)
+            others = yo.sum(axis=1, keepdims=True) - yo
+            factor = 1.0 - self.strength * others
+            return np.einsum("snm,nmk->smk", y * factor, D)
+        if self.name == "curvature":
+            side = np.cross(normals[None], D)  # (N, M, 3) perpendicular, tangent
+            norm = np.linalg.norm(side, axis=-1, keepdims=True)
+            side = np.where(norm > 0, side / np.where(norm > 0, norm, 1.0), 0.0)
+            mag = np.linalg.norm(D, axis=-1, keepdims=True)
+            bow = 4.0 * self.strength * y * (1.0 - y)
+            return np.einsum("snm,nmk->smk", y, D) + np.einsum("snm,nmk->smk", bow, side * mag)
+        d = np.einsum("snm,nmk->smk", y, D)
+        if self.name == "saturation":
+            L = self.strength
+            mag = np.linalg.norm(d, axis=-1, keepdims=True)
+            scale = np.where(mag > 1e-12, L * np.tanh(mag / L) / np.where(mag > 1e-12, mag, 1.0), 1.0)
+            return d * scale
+        return d

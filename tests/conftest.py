@@ -1,0 +1,28 @@
+"""Shared fixtures: small simulated sessions with known truth (made once per test run)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mocap.simulate import preset, simulate
+
+
+def make_session(root: Path, **overrides) -> Path:
+    """Simulate a small session into ``root`` (session/ and truth/); return ``root``."""
+    cfg = preset(overrides.pop("preset", "small"), **overrides)
+    simulate(cfg, root)
+    return root
+
+
+@pytest.fixture(scope="session")
+def small_sim(tmp_path_factory) -> Path:
+    """A small raw session (4 DUs, 3 trials, 40 markers, no battery): root with session/, truth/."""
+    return make_session(tmp_path_factory.mktemp("small_sim"), seed=11, battery=False)
+
+
+@pytest.fixture(scope="session")
+def small_truth(small_sim) -> dict:
+    return json.loads((small_sim / "truth" / "truth.json").read_text())
