@@ -15,6 +15,7 @@ import sys
 COMMANDS: dict[str, str] = {
     "validate": "check a session directory against the input contract and summarise it",
     "simulate": "make a virtual capture session with known truth (and optional hidden effects)",
+    "calibrate": "calibrate the camera rig from the wand and ground takes",
     "run": "process a session: calibration, reconstruction, analyses, figures, audit",
 }
 

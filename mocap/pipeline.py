@@ -29,6 +29,7 @@ class RunResult:
     session: Session
     out_dir: Path
     summary: dict = field(default_factory=dict)
+    calibration: object | None = None  # calib.wand_calibration.CalibrationResult (raw sessions)
 
 
 def _versions() -> dict:
@@ -62,17 +63,35 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
             session.read_commands(take.name)
     timings["validate_s"] = time.perf_counter() - t
     say(f"validated {counts['rows']} rows in {timings['validate_s']:.1f} s")
+    stages = ["validate"]
 
-    timings["total_s"] = time.perf_counter() - t0
+    calibration = None
+    if session.dimension == "2d":
+        from calib.calibration_file import write_calibration
+        from calib.wand_calibration import calibrate_session
+
+        t = time.perf_counter()
+        calibration = calibrate_session(session, progress=say)
+        write_calibration(out / "calibration.toml", calibration.rig, calibration.quality)
+        timings["calibrate_s"] = time.perf_counter() - t
+        stages.append("calibrate")
+        say(f"calibration {calibration.quality['rating']} in {timings['calibrate_s']:.1f} s")
+
     summary = {
         "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
                     "dimension": session.dimension, "fps": session.fps,
                     "cameras": list(session.camera_ids), "dus": list(session.du_ids)},
-        "stages": ["validate"],
+        "stages": stages,
         "versions": _versions(),
         "timings_s": timings,
         "counts": counts,
         "warnings": list(session.warnings),
     }
+    if calibration is not None:
+        q = calibration.quality
+        summary["calibration"] = {k: q[k] for k in (
+            "rating", "reprojection_rms_px_all", "wand_length_error_mean_mm",
+            "wand_length_error_sd_mm", "point_error_mm") if k in q}
+    timings["total_s"] = time.perf_counter() - t0
     write_text(out / "summary.json", json.dumps(summary, indent=2))
-    return RunResult(session=session, out_dir=out, summary=summary)
+    return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration)

@@ -21,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from calib.wand_calibration import CalibrationError
     from mocap.pipeline import run_session
     from mocap.session import SessionError
 
@@ -29,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = run_session(args.session_dir, args.out, progress=say)
-    except SessionError as e:
+    except (SessionError, CalibrationError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     s = result.summary

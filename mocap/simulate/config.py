@@ -49,7 +49,7 @@ class SimConfig:
     labeled: bool = False
     labeled_noise_mm: float = 0.02
     take_format: str = "csv"
-    wand_duration_s: float = 20.0
+    wand_duration_s: float = 30.0
     wand_gap_s: float = 0.0
     wand_sparse_camera: str | None = None
     wand_sparse_fraction: float = 0.2

@@ -15,7 +15,7 @@ import numpy as np
 from calib.camera import Camera, CameraRig
 
 VOLUME_CENTER = np.array([40.0, 120.0, 40.0])  # mm: between the ground square and the face
-VOLUME_HALF_MM = np.array([150.0, 130.0, 110.0])  # where the wand is waved
+VOLUME_HALF_MM = np.array([220.0, 190.0, 170.0])  # where the wand is waved
 GROUND_MARKERS_MM = np.array([[0.0, 0.0, 0.0], [120.0, 0.0, 0.0], [0.0, 0.0, 80.0]])
 WAND_OFFSETS_MM = np.array([0.0, 50.0, 150.0])
 

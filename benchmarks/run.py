@@ -1,0 +1,108 @@
+"""Benchmarks at full-study scale (the ``paper`` preset), on this machine.
+
+    python benchmarks/run.py                 # every stage; the paper session is cached
+    python benchmarks/run.py --stages simulate,calibrate
+
+Each stage runs in a fresh Python process so its wall time and peak resident memory (ru_maxrss)
+are its own. Results go to ``benchmarks/results.json`` and ``benchmarks/results.md``; the paper
+session is cached in ``benchmarks/cache/paper`` (not committed).
+
+Stages:
+- ``simulate``: ``mocap simulate --preset paper`` (target: under 10 minutes, under 4 GB);
+- ``calibrate``: wand calibration of the paper session's rig (target: under 20 s on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+CACHE = HERE / "cache" / "paper"
+TARGETS = {"simulate": {"seconds": 600, "peak_gb": 4.0}, "calibrate": {"seconds": 20}}
+
+
+def stage_simulate() -> dict:
+    from mocap.simulate import preset, simulate
+
+    if CACHE.exists():
+        shutil.rmtree(CACHE)
+    summary = simulate(preset("paper", seed=2018), CACHE)
+    size = sum(p.stat().st_size for p in (CACHE / "session").rglob("*") if p.is_file())
+    return {"takes": summary["takes"], "rows": summary["rows"], "session_mb": round(size / 1e6, 1)}
+
+
+def stage_calibrate() -> dict:
+    from calib.calibration_file import read_calibration
+    from calib.wand_calibration import calibrate_session
+    from mocap.session import load_session
+
+    import numpy as np
+
+    r = calibrate_session(load_session(CACHE / "session"))
+    truth, _ = read_calibration(CACHE / "truth" / "cameras.toml")
+    centre = max(float(np.linalg.norm(c.center - t.center)) for c, t in zip(r.rig, truth))
+    q = r.quality
+    return {"centre_error_max_mm": round(centre, 4), "rating": q["rating"],
+            "wand_length_error_sd_mm": round(q["wand_length_error_sd_mm"], 4),
+            "reprojection_rms_px": round(q["reprojection_rms_px_all"], 4)}
+
+
+STAGES = {"simulate": stage_simulate, "calibrate": stage_calibrate}
+
+
+def run_stage(name: str) -> dict:
+    t0 = time.perf_counter()
+    info = STAGES[name]()
+    info["seconds"] = round(time.perf_counter() - t0, 2)
+    info["peak_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2, 3)
+    return info
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stages", default=",".join(STAGES))
+    ap.add_argument("--stage", help=argparse.SUPPRESS)  # internal: run one stage, print JSON
+    args = ap.parse_args()
+    if args.stage:
+        print(json.dumps(run_stage(args.stage)))
+        return 0
+    names = [s for s in args.stages.split(",") if s]
+    results_path = HERE / "results.json"
+    results = json.loads(results_path.read_text()) if results_path.exists() else {}
+    results["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version(),
+                          "platform": platform.platform()}
+    for name in names:
+        if name != "simulate" and not (CACHE / "session" / "session.toml").exists():
+            print("paper session not cached: running simulate first", file=sys.stderr)
+            names.insert(names.index(name), "simulate")
+        print(f"== {name}", file=sys.stderr, flush=True)
+        out = subprocess.run([sys.executable, __file__, "--stage", name], check=True,
+                             capture_output=True, text=True)
+        info = json.loads(out.stdout.strip().splitlines()[-1])
+        info["targets"] = TARGETS.get(name, {})
+        info["date"] = time.strftime("%Y-%m-%d")
+        results.setdefault("stages", {})[name] = info
+        print(json.dumps(info), file=sys.stderr)
+    results_path.write_text(json.dumps(results, indent=2) + "\n")
+    lines = ["# Benchmarks (paper preset)", "",
+             f"Machine: {results['machine']['cpus']} CPUs, Python {results['machine']['python']}.", "",
+             "| stage | seconds | peak memory (GB) | target | details |", "|---|---|---|---|---|"]
+    for name, info in results.get("stages", {}).items():
+        details = ", ".join(f"{k}={v}" for k, v in info.items()
+                            if k not in ("seconds", "peak_gb", "targets", "date"))
+        lines.append(f"| {name} | {info['seconds']} | {info['peak_gb']} | {info['targets']} | {details} |")
+    (HERE / "results.md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The calibration's quality report, in the style of commercial systems.
+
+- reprojection RMS per camera (px, per image axis: sqrt(mean(dx^2 + dy^2) / 2), directly
+  comparable with a centroid noise sigma) over the sightings the final solve kept;
+- wand-length error over frames: every frame's wand markers are triangulated freely (no rigid
+  model) with the calibrated rig, and the end-to-end length compared with the manifest's (mean
+  and standard deviation, mm);
+- estimated 3D point error (mm): the wand-length standard deviation over sqrt(2) (the length is
+  the difference of two independent point errors along the wand);
+- frames used per camera, sightings rejected as outliers;
+- a rating with documented thresholds (``RATING``): excellent when every camera's RMS is under
+  0.15 px and the wand-length sd under 0.05 mm; good under 0.4 px and 0.2 mm; else poor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.camera import CameraRig
+from calib.triangulation import triangulate
+from calib.wand import WandObservations
+
+RATING = {
+    "excellent": {"max_reprojection_rms_px": 0.15, "max_wand_length_sd_mm": 0.05},
+    "good": {"max_reprojection_rms_px": 0.4, "max_wand_length_sd_mm": 0.2},
+}
+
+
+def wand_lengths(rig: CameraRig, obs: WandObservations) -> tuple[np.ndarray, np.ndarray]:
+    """Frames and the freely triangulated end-to-end wand length (mm) in each (>= 2 cameras)."""
+    frames = np.unique(obs.frame)
+    n_w = obs.uv.shape[1]
+    local = np.searchsorted(frames, obs.frame)
+    uv = np.full((len(rig), frames.size * n_w, 2), np.nan)
+    rows = (local[:, None] * n_w + np.arange(n_w)[None]).ravel()
+    uv[np.repeat(obs.camera, n_w), rows] = obs.uv.reshape(-1, 2)
+    X = triangulate(rig, uv).X.reshape(frames.size, n_w, 3)
+    return frames, np.linalg.norm(X[:, -1] - X[:, 0], axis=1)
+
+
+def rate(per_camera_rms: dict, wand_sd_mm: float) -> str:
+    worst = max(per_camera_rms.values()) if per_camera_rms else np.inf
+    for name in ("excellent", "good"):
+        th = RATING[name]
+        if worst <= th["max_reprojection_rms_px"] and wand_sd_mm <= th["max_wand_length_sd_mm"]:
+            return name
+    return "poor"
+
+
+def quality_report(rig: CameraRig, obs: WandObservations, used: np.ndarray,
+                   residuals: np.ndarray, wand_length_mm: float, ground=None) -> dict:
+    cam_used = obs.camera[used]
+    rms = {}
+    frames_used = {}
+    for i, cid in enumerate(obs.camera_ids):
+        r = residuals[cam_used == i]
+        rms[cid] = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+        frames_used[cid] = int(np.sum(cam_used == i))
+    kept = obs.select(used)
+    _, lengths = wand_lengths(rig, kept)
+    lengths = lengths[np.isfinite(lengths)]
+    err = lengths - wand_length_mm
+    sd = float(np.std(err, ddof=1)) if err.size > 1 else float("nan")
+    q = {
+        "reprojection_rms_px": rms,
+        "reprojection_rms_px_all": float(np.sqrt(np.mean(residuals**2))),
+        "wand_length_mm": wand_length_mm,
+        "wand_length_error_mean_mm": float(np.mean(err)) if err.size else float("nan"),
+        "wand_length_error_sd_mm": sd,
+        "point_error_mm": sd / np.sqrt(2.0),
+        "frames_used": frames_used,
+        "wand_frames": int(err.size),
+        "sightings_found": int(len(obs)),
+        "sightings_rejected": int(np.sum(~used & np.isin(obs.frame, obs.frame[used]))),
+        "rating": rate(rms, sd),
+        "rating_thresholds": RATING,
+    }
+    if ground is not None:
+        q["ground_fit_rms_mm"] = float(ground.rms_mm)
+        q["ground_scale_agreement"] = float(ground.scale)
+    return q
