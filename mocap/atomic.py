@@ -66,5 +66,6 @@ def write_csv(df, path: str | os.PathLike, decimals: int | None = None) -> Path:
                 df[col] = np.round(df[col].to_numpy(), decimals)
     table = pa.Table.from_pandas(df, preserve_index=False)
     with atomic_path(path) as tmp:
-        pacsv.write_csv(table, tmp, write_options=pacsv.WriteOptions(quoting_style="none"))
+        options = pacsv.WriteOptions(quoting_style="none", quoting_header="none")
+        pacsv.write_csv(table, tmp, write_options=options)
     return Path(path)

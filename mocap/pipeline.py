@@ -17,19 +17,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+import pandas as pd
+
 from mocap import __version__
-from mocap.atomic import write_text
-from mocap.session import Session, load_session
-
-
-@dataclass
-class RunResult:
-    """Everything a run produced; ``summary`` is what summary.json holds."""
-
-    session: Session
-    out_dir: Path
-    summary: dict = field(default_factory=dict)
-    calibration: object | None = None  # calib.wand_calibration.CalibrationResult (raw sessions)
+from mocap.atomic import write_csv, write_parquet, write_text
+from mocap.reconstruct.correspondence import ReconstructionSettings, reconstruct_points
+from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
+from mocap.reconstruct.labeling import (
+    LabelSettings,
+    MarkerSet,
+    identify_markers,
+    label_take,
+    trajectories_frame,
+)
+from mocap.reconstruct.trials import (
+    RejectionSettings,
+    TrialAverage,
+    average_trials,
+    find_rejections,
+    noise_floor,
+    responses_frame,
+)
+from mocap.session import Session, SessionError, command_matrix, load_session
 
 
 def _versions() -> dict:
@@ -41,8 +51,116 @@ def _versions() -> dict:
             "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
 
 
+@dataclass(frozen=True)
+class RunSettings:
+    """Settings of a run; defaults follow the paper."""
+
+    reconstruction: ReconstructionSettings = ReconstructionSettings()
+    labels: LabelSettings = LabelSettings()
+    rejections: RejectionSettings = RejectionSettings()
+    fill_gaps_frames: int = 0  # interpolate gaps up to this many frames (always flagged)
+
+
+@dataclass
+class Reconstruction:
+    """Labeled trajectories kept for the later stages (response takes), plus statistics."""
+
+    markers: MarkerSet
+    dense: dict  # take name -> LabeledTake, for response takes and the rest take
+    stats: dict
+    noise_floor_mm: float | None
+    noise_per_marker_mm: np.ndarray | None
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; ``summary`` is what summary.json holds."""
+
+    session: Session
+    out_dir: Path
+    summary: dict = field(default_factory=dict)
+    calibration: object | None = None  # calib.wand_calibration.CalibrationResult (raw sessions)
+    reconstruction: Reconstruction | None = None
+    averages: list = field(default_factory=list)
+    rejections: pd.DataFrame | None = None
+
+
+def _take_frame_count(df: pd.DataFrame) -> int:
+    return int(df["frame"].max()) + 1
+
+
+def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSettings",
+                    say: Callable[[str], None]) -> Reconstruction:
+    """Every take to labeled trajectories, written as trajectories/<take>.parquet."""
+    keep_kinds = {"rest", "response"}
+    dense: dict = {}
+    stats: dict = {"takes": {}}
+    face_takes = [t for t in session.takes if t.kind in ("rest", "response", "motion")]
+    if session.dimension == "2d":
+        rig, quality = calibration.rig, calibration.quality
+        rest = session.takes_of_kind("rest")
+        if not rest:
+            raise SessionError(f"{session.root}/session.toml: a raw session needs a 'rest' take "
+                               "to find its markers")
+        blobs = session.read_take(rest[0].name)
+        pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
+        markers = identify_markers(pts, _take_frame_count(blobs), session.marker_template,
+                                   settings.labels)
+        say(f"{len(markers.names)} markers found on the rest take '{rest[0].name}'")
+        for take in face_takes:
+            blobs = session.read_take(take.name)
+            n_frames = _take_frame_count(blobs)
+            pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
+            lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames)
+            lab.stats["blobs"] = int(len(blobs))
+            lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
+            write_parquet(trajectories_frame(lab, markers.names),
+                          out / "trajectories" / f"{take.name}.parquet")
+            stats["takes"][take.name] = lab.stats
+            if take.kind in keep_kinds:
+                dense[take.name] = lab
+            say(f"  {take.name}: {lab.stats['labeled_points']} labeled points, "
+                f"{lab.stats['missing_marker_frames']} marker-frames missing")
+    else:
+        frames = {t.name: session.read_take(t.name) for t in face_takes}
+        names = marker_names_3d(list(frames.values()), session.marker_template)
+        rest_take = session.takes_of_kind("rest")
+        rest_pos = (np.nanmedian(dense_from_3d(frames[rest_take[0].name], names).X, axis=0)
+                    if rest_take else np.full((len(names), 3), np.nan))
+        markers = MarkerSet(tuple(names), rest_pos)
+        for take in face_takes:
+            lab = dense_from_3d(frames[take.name], names)
+            write_parquet(trajectories_frame(lab, names), out / "trajectories" / f"{take.name}.parquet")
+            stats["takes"][take.name] = lab.stats
+            if take.kind in keep_kinds:
+                dense[take.name] = lab
+    noise, noise_mean = None, None
+    rest = session.takes_of_kind("rest")
+    if rest and rest[0].name in dense:
+        noise, noise_mean = noise_floor(dense[rest[0].name].X)
+    total = sum(s.get("labeled_points", s.get("points", 0)) for s in stats["takes"].values())
+    stats["labeled_points"] = int(total)
+    return Reconstruction(markers, dense, stats, noise_mean, noise)
+
+
+def average_responses(session: Session, recon: Reconstruction) -> list[TrialAverage]:
+    """Per DU, its response takes averaged over trials."""
+    out = []
+    by_du: dict[int, list] = {}
+    for take in session.takes_of_kind("response"):
+        by_du.setdefault(int(take.du), []).append(take)
+    for du, takes in sorted(by_du.items()):
+        takes = sorted(takes, key=lambda t: (t.trial or 0, t.name))
+        X = [recon.dense[t.name].X for t in takes]
+        cmds = [command_matrix(session.read_commands(t.name), session.fps, x.shape[0], [du])[:, 0]
+                for t, x in zip(takes, X)]
+        out.append(average_trials(du, X, cmds, session.fps, [t.name for t in takes]))
+    return out
+
+
 def run_session(session_dir: str | Path, out_dir: str | Path,
-                progress: Callable[[str], None] | None = None) -> RunResult:
+                progress: Callable[[str], None] | None = None,
+                settings: RunSettings = RunSettings()) -> RunResult:
     """Run every available stage on ``session_dir`` and write results into ``out_dir``."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
@@ -64,6 +182,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     timings["validate_s"] = time.perf_counter() - t
     say(f"validated {counts['rows']} rows in {timings['validate_s']:.1f} s")
     stages = ["validate"]
+    warnings_list = list(session.warnings)
 
     calibration = None
     if session.dimension == "2d":
@@ -77,6 +196,33 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
         stages.append("calibrate")
         say(f"calibration {calibration.quality['rating']} in {timings['calibrate_s']:.1f} s")
 
+    # --- reconstruction (raw) or labeled input (3D) -> trajectories/<take>.parquet ----------
+    t = time.perf_counter()
+    recon = reconstruct_all(session, out, calibration, settings, say)
+    timings["reconstruct_s"] = time.perf_counter() - t
+    stages.append("reconstruct" if session.dimension == "2d" else "load_labeled")
+
+    # --- trials, noise floor, rejections -> responses.parquet, rejections.csv -----------------
+    t = time.perf_counter()
+    averages = average_responses(session, recon)
+    names = list(recon.markers.names)
+    if averages:
+        responses = pd.concat([responses_frame(a, names) for a in averages], ignore_index=True)
+    else:
+        responses = pd.DataFrame(columns=["du", "frame", "time_s", "command", "marker", "x", "y",
+                                          "z", "spread_mm", "n_trials", "displacement_mm", "delta"])
+    rejections = find_rejections(averages, names, settings.rejections)
+    rejected = set(zip(rejections["du"].astype("float").fillna(-1).astype(int), rejections["marker"]))
+    all_du = {m for d, m in rejected if d == -1}
+    responses["rejected"] = [(m in all_du) or ((d, m) in rejected)
+                             for d, m in zip(responses["du"], responses["marker"])] if len(responses) else []
+    write_parquet(responses, out / "responses.parquet")
+    write_csv(rejections, out / "rejections.csv")
+    timings["trials_s"] = time.perf_counter() - t
+    stages.append("trials")
+    for a in averages:
+        warnings_list.extend(a.warnings)
+
     summary = {
         "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
                     "dimension": session.dimension, "fps": session.fps,
@@ -85,7 +231,12 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
         "versions": _versions(),
         "timings_s": timings,
         "counts": counts,
-        "warnings": list(session.warnings),
+        "warnings": warnings_list,
+        "markers": {"count": len(names), "names": names,
+                    "missing_from_template": list(recon.markers.missing_from_template)},
+        "reconstruction": recon.stats,
+        "noise_floor_mm": recon.noise_floor_mm,
+        "rejections": {str(k): int(v) for k, v in rejections["reason"].value_counts().items()},
     }
     if calibration is not None:
         q = calibration.quality
@@ -94,4 +245,5 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
             "wand_length_error_sd_mm", "point_error_mm") if k in q}
     timings["total_s"] = time.perf_counter() - t0
     write_text(out / "summary.json", json.dumps(summary, indent=2))
-    return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration)
+    return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration,
+                     reconstruction=recon, averages=averages, rejections=rejections)

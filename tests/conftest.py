@@ -26,3 +26,11 @@ def small_sim(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def small_truth(small_sim) -> dict:
     return json.loads((small_sim / "truth" / "truth.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def small_run(small_sim, tmp_path_factory):
+    """``mocap run``'s library call on the small raw session: the RunResult."""
+    from mocap.pipeline import run_session
+
+    return run_session(small_sim / "session", tmp_path_factory.mktemp("small_run"))

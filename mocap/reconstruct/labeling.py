@@ -1,0 +1,250 @@
+"""Marker identities: found on the rest take, followed frame to frame in every take.
+
+Linking: each 3D point is joined to its mutual nearest neighbour in the next frame when closer
+than ``link_gate_mm`` (a face marker moves well under 1 mm per frame at 120 fps, markers sit
+about 8 mm apart); points left without a successor are joined across gaps of up to
+``max_gap_frames`` frames the same way. The chains (connected components of the link graph) are
+tracklets. Both steps are k-d tree queries over all frames at once.
+
+Assignment: tracklets are taken in order of their first frame; those starting together are
+assigned to the free markers (whose previous tracklet has ended) by optimal assignment
+(Hungarian, ``scipy.optimize.linear_sum_assignment``) on the distance between the tracklet's first
+position and the marker's last known position (its rest position before it is first seen), within
+``start_gate_mm``. Unassigned tracklets (ghost points, fragments) are left out and counted.
+
+Marker naming (``identify_markers``): the rest take's tracklets present in at least
+``min_presence`` of its frames are the markers, at their median positions. With a ``markers.csv``
+template they take the template's names by optimal assignment within ``template_gate_mm``
+(template markers with no match are reported missing; extra markers are named ``X001``...).
+Without a template they are named ``M001``, ``M002``... in reading order: by world height (y,
+descending, rounded to 0.5 mm) then x ascending.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from mocap.reconstruct.correspondence import Points3D
+
+_BIG = 1.0e6  # mm between frames in the k-d tree
+
+
+@dataclass(frozen=True)
+class LabelSettings:
+    link_gate_mm: float = 2.0
+    max_gap_frames: int = 6
+    start_gate_mm: float = 3.0
+    min_presence: float = 0.5
+    template_gate_mm: float = 6.0
+
+
+@dataclass(frozen=True)
+class MarkerSet:
+    """The session's markers: names and rest positions (n_markers, 3) mm."""
+
+    names: tuple[str, ...]
+    rest_mm: np.ndarray
+    missing_from_template: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class LabeledTake:
+    """Dense labeled trajectories of one take.
+
+    X : (n_frames, n_markers, 3) mm, NaN where not reconstructed; n_cameras : (n_frames,
+    n_markers) int (0 where missing); residual_px : (n_frames, n_markers) (NaN where missing);
+    interpolated : (n_frames, n_markers) bool, gap samples filled by interpolation.
+    """
+
+    X: np.ndarray
+    n_cameras: np.ndarray
+    residual_px: np.ndarray
+    interpolated: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = LabelSettings()) -> np.ndarray:
+    """Tracklet id (n,) of each point, by mutual nearest-neighbour links between frames."""
+    n = frame.size
+    if n == 0:
+        return np.zeros(0, np.int64)
+    pts = np.column_stack([frame * _BIG, X])
+    tree = cKDTree(pts)
+    src, dst = [], []
+    has_next = np.zeros(n, bool)
+    has_prev = np.zeros(n, bool)
+    for gap in range(1, settings.max_gap_frames + 2):
+        cand = np.flatnonzero(~has_next) if gap > 1 else np.arange(n)
+        if cand.size == 0:
+            break
+        fwd_q = pts[cand].copy()
+        fwd_q[:, 0] += gap * _BIG
+        d, j = tree.query(fwd_q, k=1, distance_upper_bound=settings.link_gate_mm)
+        ok = np.isfinite(d)
+        i_, j_ = cand[ok], j[ok]
+        ok2 = ~has_prev[j_]
+        i_, j_ = i_[ok2], j_[ok2]
+        # mutual: j's nearest neighbour `gap` frames back is i
+        back = pts[j_].copy()
+        back[:, 0] -= gap * _BIG
+        d2, i2 = tree.query(back, k=1, distance_upper_bound=settings.link_gate_mm)
+        mutual = np.isfinite(d2) & (i2 == i_)
+        i_, j_ = i_[mutual], j_[mutual]
+        # one link per target
+        _, first = np.unique(j_, return_index=True)
+        i_, j_ = i_[first], j_[first]
+        src.append(i_)
+        dst.append(j_)
+        has_next[i_] = True
+        has_prev[j_] = True
+    s = np.concatenate(src)
+    t = np.concatenate(dst)
+    g = coo_matrix((np.ones(s.size), (s, t)), shape=(n, n))
+    _, comp = connected_components(g, directed=False)
+    return comp
+
+
+def _tracklet_table(frame, X, comp):
+    order = np.lexsort((frame, comp))
+    c = comp[order]
+    starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+    ends = np.r_[starts[1:], c.size] - 1
+    return order, starts, ends
+
+
+def identify_markers(points: Points3D, n_frames: int, template: pd.DataFrame | None = None,
+                     settings: LabelSettings = LabelSettings()) -> MarkerSet:
+    """The markers of a session from its rest take (see the module docstring)."""
+    comp = link_tracklets(points.frame, points.X, settings)
+    order, starts, ends = _tracklet_table(points.frame, points.X, comp)
+    # merge tracklets of one still marker split by gaps: cluster their medians
+    med = np.array([np.median(points.X[order[s:e + 1]], axis=0) for s, e in zip(starts, ends)])
+    size = ends - starts + 1
+    tree = cKDTree(med)
+    pairs = tree.query_pairs(r=1.0, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(med),) * 2)
+    _, cluster = connected_components(g, directed=False)
+    presence = np.bincount(cluster, weights=size)
+    keep = np.flatnonzero(presence >= settings.min_presence * n_frames)
+    rest = np.array([np.average(med[cluster == k], axis=0, weights=size[cluster == k]) for k in keep])
+    rest = rest.reshape(-1, 3)
+    if template is not None and len(template):
+        tpos = template[["x", "y", "z"]].to_numpy(float)
+        tnames = template["name"].astype(str).to_numpy()
+        cost = np.linalg.norm(tpos[:, None] - rest[None], axis=-1)
+        ti, ri = linear_sum_assignment(np.where(cost < settings.template_gate_mm, cost, 1e6))
+        good = cost[ti, ri] < settings.template_gate_mm
+        ti, ri = ti[good], ri[good]
+        names = [None] * len(rest)
+        for a, b in zip(ti, ri):
+            names[b] = tnames[a]
+        extra = 1
+        for k in range(len(names)):
+            if names[k] is None:
+                names[k] = f"X{extra:03d}"
+                extra += 1
+        missing = tuple(sorted(set(tnames) - set(tnames[ti])))
+        # template order for the named ones, extras after
+        rank = {n: i for i, n in enumerate(tnames)}
+        o = sorted(range(len(names)), key=lambda k: (rank.get(names[k], len(rank) + k)))
+        return MarkerSet(tuple(names[k] for k in o), rest[o], missing)
+    o = np.lexsort((rest[:, 0], -np.round(rest[:, 1] * 2.0) / 2.0))
+    return MarkerSet(tuple(f"M{k + 1:03d}" for k in range(len(o))), rest[o])
+
+
+def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
+               settings: LabelSettings = LabelSettings(), fill_gaps_frames: int = 0) -> LabeledTake:
+    """Follow the markers through a take (see the module docstring)."""
+    M = len(markers.names)
+    X = np.full((n_frames, M, 3), np.nan)
+    ncam = np.zeros((n_frames, M), np.int64)
+    resid = np.full((n_frames, M), np.nan)
+    comp = link_tracklets(points.frame, points.X, settings)
+    order, starts, ends = _tracklet_table(points.frame, points.X, comp)
+    f_sorted = points.frame[order]
+    first_frame = f_sorted[starts]
+    last_frame = f_sorted[ends]
+    first_pos = points.X[order[starts]]
+    last_known = markers.rest_mm.copy()
+    busy_until = np.full(M, -1)
+    assigned = np.full(starts.size, -1)
+    for s in np.unique(first_frame):
+        tk = np.flatnonzero(first_frame == s)
+        free = np.flatnonzero(busy_until < s)
+        if free.size == 0:
+            continue
+        cost = np.linalg.norm(first_pos[tk][:, None] - last_known[free][None], axis=-1)
+        ti, mi = linear_sum_assignment(np.where(cost < settings.start_gate_mm, cost, 1e6))
+        ok = cost[ti, mi] < settings.start_gate_mm
+        for a, m in zip(tk[ti[ok]], free[mi[ok]]):
+            assigned[a] = m
+            busy_until[m] = last_frame[a]
+            last_known[m] = points.X[order[ends[a]]]
+    # scatter every assigned tracklet's points
+    lab_of_point = np.full(points.frame.size, -1)
+    tr_of_sorted = np.repeat(np.arange(starts.size), ends - starts + 1)
+    lab_of_point[order] = assigned[tr_of_sorted]
+    sel = lab_of_point >= 0
+    fr, mk = points.frame[sel], lab_of_point[sel]
+    X[fr, mk] = points.X[sel]
+    ncam[fr, mk] = points.n_cameras[sel]
+    resid[fr, mk] = points.residual_px[sel]
+    interp = np.zeros((n_frames, M), bool)
+    if fill_gaps_frames > 0:
+        X, interp = fill_gaps(X, fill_gaps_frames)
+    stats = {
+        "points": int(points.frame.size),
+        "labeled_points": int(sel.sum()),
+        "unlabeled_points": int((~sel).sum()),
+        "tracklets": int(starts.size),
+        "missing_marker_frames": int(np.isnan(X[..., 0]).sum()),
+        "interpolated_marker_frames": int(interp.sum()),
+    }
+    return LabeledTake(X, ncam, resid, interp, stats)
+
+
+def fill_gaps(X: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linearly interpolate interior gaps of at most ``max_frames`` frames; return (X, filled)."""
+    X = X.copy()
+    n_frames, M, _ = X.shape
+    missing = np.isnan(X[..., 0])
+    filled = np.zeros_like(missing)
+    t = np.arange(n_frames)
+    for m in np.flatnonzero(missing.any(axis=0) & ~missing.all(axis=0)):
+        miss = missing[:, m]
+        # run lengths of gaps
+        edges = np.diff(np.r_[0, miss.astype(int), 0])
+        g0 = np.flatnonzero(edges == 1)
+        g1 = np.flatnonzero(edges == -1)
+        short = (g1 - g0 <= max_frames) & (g0 > 0) & (g1 < n_frames)
+        mask = np.zeros(n_frames, bool)
+        for a, b in zip(g0[short], g1[short]):
+            mask[a:b] = True
+        if mask.any():
+            good = ~miss
+            for k in range(3):
+                X[mask, m, k] = np.interp(t[mask], t[good], X[good, m, k])
+            filled[mask, m] = True
+    return X, filled
+
+
+def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
+    """Long table per OUTPUTS.md: frame, marker, x, y, z, n_cameras, residual_px, interpolated."""
+    n_frames, M, _ = labeled.X.shape
+    return pd.DataFrame({
+        "frame": np.repeat(np.arange(n_frames, dtype=np.int64), M),
+        "marker": np.tile(np.asarray(names, dtype=object), n_frames),
+        "x": labeled.X[..., 0].ravel(),
+        "y": labeled.X[..., 1].ravel(),
+        "z": labeled.X[..., 2].ravel(),
+        "n_cameras": labeled.n_cameras.ravel(),
+        "residual_px": labeled.residual_px.ravel(),
+        "interpolated": labeled.interpolated.ravel(),
+    })
