@@ -1,7 +1,8 @@
 """Batched multi-view triangulation: a linear (DLT) solution refined by Gauss-Newton.
 
 Observations are given per camera as ``uv`` (n_cameras, n_points, 2) distorted pixels with NaN
-where a camera has no observation. Each point is solved from all its observing cameras at once
+where a camera has no observation. :func:`triangulate` runs the fused compiled kernel
+(``triangulation_kernel``); the NumPy functions here are its reference. Each point is solved from all its observing cameras at once
 (no pairwise fusion, no dropped views): the linear solution minimises the algebraic error in
 undistorted normalised coordinates, then ``iterations`` Gauss-Newton steps minimise the
 reprojection error, each camera's normalised residual weighted by its focal length (so the
@@ -117,11 +118,12 @@ def triangulate(rig: CameraRig, uv: np.ndarray, *, min_cameras: int = 2,
     if uv.ndim != 3 or uv.shape[0] != len(rig) or uv.shape[2] != 2:
         raise ValueError(f"triangulate: expected uv of shape ({len(rig)}, n_points, 2), got {uv.shape}")
     min_cameras = max(int(min_cameras), 2)
+    from calib.triangulation_kernel import triangulate_normalized
+
     xn = normalized_observations(rig, uv)
     Rt = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])
     f = np.array([c.focal_px for c in rig])
-    X = linear_triangulation(Rt, xn, f)
-    X = gauss_newton(Rt, xn, X, f, iterations)
+    X = triangulate_normalized(Rt, f, xn, iterations)
     seen = np.all(np.isfinite(uv), axis=-1)
     n_cam = seen.sum(axis=0)
     X[n_cam < min_cameras] = np.nan

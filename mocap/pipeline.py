@@ -83,6 +83,7 @@ class RunResult:
     reconstruction: Reconstruction | None = None
     averages: list = field(default_factory=list)
     rejections: pd.DataFrame | None = None
+    analysis: object | None = None  # analysis.session_analysis.SessionAnalysis
 
 
 def _take_frame_count(df: pd.DataFrame) -> int:
@@ -158,6 +159,55 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
     return out
 
 
+def run_analyses(session: Session, recon: Reconstruction, averages, rejections, out: Path,
+                 say: Callable[[str], None]):
+    """The paper's analyses, their tables and figures; motion takes evaluated against plans."""
+    from analysis import figures
+    from analysis.session_analysis import analyze_responses, evaluate_plan_take, is_plan, kept_markers
+
+    names = list(recon.markers.names)
+    du_names = {d.id: d.name for d in session.dus}
+    feedback = {d.id: d.feedback for d in session.dus}
+    noise = None
+    if recon.noise_per_marker_mm is not None:
+        noise = np.sqrt(np.nanmean(recon.noise_per_marker_mm**2, axis=1))
+    res = analyze_responses(averages, names, rejections, du_names, noise_mm=noise)
+    write_csv(res.properties, out / "properties.csv")
+    write_csv(res.linearity, out / "linearity.csv")
+    write_csv(res.marker_properties, out / "marker_properties.csv")
+    fig = out / "figures"
+    rest = recon.markers.rest_mm
+    for avg in averages:
+        p = res.du[avg.du]
+        figures.displacement_field(fig / f"du{avg.du:02d}_displacement_field.png", avg.du,
+                                   du_names.get(avg.du, ""), rest, res.fields_mm[avg.du],
+                                   res.keep[avg.du])
+        figures.response_curves(fig / f"du{avg.du:02d}_response.png", avg.du,
+                                du_names.get(avg.du, ""), avg.fps, avg.delta, res.keep[avg.du],
+                                p.ramps, p)
+    props = res.properties
+    figures.linearity_bars(fig / "linearity.png", props["du"], props["linearity_mean"],
+                           props["linearity_std"])
+    figures.property_chart(fig / "property_chart.png", props["du"], props["sensitivity"],
+                           props["hysteresis"], props["dyssynchrony"],
+                           [feedback.get(d, False) for d in props["du"]])
+    keep_all = kept_markers(rejections[rejections["du"].isna()], names, None)
+    for take in session.takes_of_kind("motion"):
+        if not is_plan(take.plan) or take.commands is None:
+            continue
+        path = out / "trajectories" / f"{take.name}.parquet"
+        df = pd.read_parquet(path, columns=["frame", "marker", "x", "y", "z"])
+        n_frames = int(df["frame"].max()) + 1
+        X = df[["x", "y", "z"]].to_numpy().reshape(n_frames, len(names), 3)
+        rows = session.read_commands(take.name)
+        cmd = command_matrix(rows, session.fps, n_frames, list(session.du_ids))
+        ev = evaluate_plan_take(X, cmd, rows, session.fps, take.plan, keep_all)
+        res.motions.append((take.name, take.plan.upper(), ev))
+        figures.motion_result(fig / f"motion_{take.name}.png", f"{take.name} (plan {take.plan})", ev)
+    say(f"analyses: {len(averages)} DUs, {len(res.motions)} motion takes evaluated; figures in {fig}")
+    return res
+
+
 def run_session(session_dir: str | Path, out_dir: str | Path,
                 progress: Callable[[str], None] | None = None,
                 settings: RunSettings = RunSettings()) -> RunResult:
@@ -223,6 +273,14 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     for a in averages:
         warnings_list.extend(a.warnings)
 
+    # --- analyses and figures -> properties.csv, linearity.csv, figures/ ---------------------
+    analysis_result = None
+    if averages:
+        t = time.perf_counter()
+        analysis_result = run_analyses(session, recon, averages, rejections, out, say)
+        timings["analyze_s"] = time.perf_counter() - t
+        stages.append("analyze")
+
     summary = {
         "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
                     "dimension": session.dimension, "fps": session.fps,
@@ -238,6 +296,13 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
         "noise_floor_mm": recon.noise_floor_mm,
         "rejections": {str(k): int(v) for k, v in rejections["reason"].value_counts().items()},
     }
+    if analysis_result is not None:
+        summary["properties"] = analysis_result.properties[
+            ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean"]].to_dict("records")
+        summary["motion_evaluations"] = [
+            {"take": take, "plan": plan, "rms_forward": ev.rms_forward,
+             "rms_backward": ev.rms_backward, "lag_s": ev.lag_s}
+            for take, plan, ev in analysis_result.motions]
     if calibration is not None:
         q = calibration.quality
         summary["calibration"] = {k: q[k] for k in (
@@ -246,4 +311,5 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     timings["total_s"] = time.perf_counter() - t0
     write_text(out / "summary.json", json.dumps(summary, indent=2))
     return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration,
-                     reconstruction=recon, averages=averages, rejections=rejections)
+                     reconstruction=recon, averages=averages, rejections=rejections,
+                     analysis=analysis_result)

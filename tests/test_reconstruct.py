@@ -143,7 +143,11 @@ def test_responses_table(small_run):
     assert r["n_trials"].max() == 3
     d = r[r["du"] == 4]
     assert d["command"].max() == 255 and d["command"].min() == 0
-    assert np.nanmax(d["delta"]) == pytest.approx(1.0)
+    # normalised by the smoothed peak: a moving marker's noisy maximum sits a little above 1
+    moving = d["marker"].isin(d.loc[d["displacement_mm"] > 1, "marker"])
+    assert 1.0 <= np.nanmax(d.loc[moving, "delta"]) < 1.2
+    plateau = d[d["command"] == 255].groupby("marker")["delta"].median()
+    assert plateau[plateau.index.isin(d.loc[d["displacement_mm"] > 1, "marker"])].between(0.95, 1.05).all()
     summary = json.loads((small_run.out_dir / "summary.json").read_text())
     assert "reconstruct" in summary["stages"] and summary["noise_floor_mm"] > 0
 

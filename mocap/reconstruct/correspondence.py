@@ -30,7 +30,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from calib.camera import CameraRig
-from calib.triangulation import gauss_newton, linear_triangulation
+from calib.triangulation_kernel import triangulate_normalized
 
 _FRAME_SPACING = 1.0e6  # px: keeps k-d tree neighbours within one frame
 
@@ -181,7 +181,7 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
         n = pa.size
         xn = np.full((C, n, 2), np.nan)
         xn[a], xn[b] = bt.xn[pa], bt.xn[pb]
-        X = linear_triangulation(Rt, xn, focal)
+        X = triangulate_normalized(Rt, focal, xn, 0)
         views = np.full((n, C), -1, np.int64)
         views[:, a], views[:, b] = pa, pb
         depth_ok = np.ones(n, bool)
@@ -234,8 +234,7 @@ def _solve_views(views, bt, rig, Rt, focal):
         s = views[:, c] >= 0
         xn[c, s] = bt.xn[views[s, c]]
         uv[c, s] = bt.uv[views[s, c]]
-    X = linear_triangulation(Rt, xn, focal)
-    X = gauss_newton(Rt, xn, X, focal, 1)
+    X = triangulate_normalized(Rt, focal, xn, 1)
     err = np.linalg.norm(rig.project(X) - uv, axis=-1)  # (C, n)
     return X, err
 

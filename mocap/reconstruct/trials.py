@@ -12,7 +12,8 @@ marker was not reconstructed; the first axis is time.
   ``n_trials`` counts the trials that saw the marker in that frame.
 - Displacement: d_m(t) = v_m(t) - v_m(0), where v_m(0) is the mean position over the frames
   before the first command change (the take's rest lead-in), less noisy than frame 0 alone;
-  ``delta`` = |d| / max_t |d| per (DU, marker).
+  ``delta`` = |d| / max_t |d| per (DU, marker), the maximum taken on the displacement smoothed
+  over ``NORMALISE_S`` (see ``analysis.displacement``).
 - Noise floor: per marker and axis, the standard deviation over the rest take's frames; the
   session's noise floor is their mean (the paper: 0.025 mm).
 - Rejections (``rejections.csv``), each with a stable reason keyword, its value and threshold:
@@ -33,6 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from analysis.displacement import normalized, normalized_along, peak_length
+
+NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
+
 
 @dataclass(frozen=True)
 class RejectionSettings:
@@ -49,7 +54,9 @@ class TrialAverage:
 
     command : (n_frames,) the DU's command; mean : (n_frames, M, 3) mm; spread_mm : (n_frames,
     M); n_trials : (n_frames, M) int; rest_mm : (M, 3) v(0); displacement_mm : (n_frames, M);
-    delta : (n_frames, M); trials : (n_trials, n_frames, M, 3) the aligned trials; takes: names.
+    delta : (n_frames, M) METHOD.md's |d| / max |d|; delta_along : the same along each marker's
+    principal direction (noise-unbiased, ``analysis.displacement.normalized_along``); trials :
+    (n_trials, n_frames, M, 3) the aligned trials; takes: names.
     """
 
     du: int
@@ -64,6 +71,8 @@ class TrialAverage:
     trials: np.ndarray
     takes: tuple[str, ...]
     warnings: tuple[str, ...] = ()
+    delta_along: np.ndarray | None = None  # (n_frames, M) along the principal direction
+    along_mm: np.ndarray | None = None  # (n_frames, M) displacement along it, mm
 
 
 def _first_change(command: np.ndarray) -> int:
@@ -110,11 +119,11 @@ def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.nd
         with _w.catch_warnings():
             _w.simplefilter("ignore", RuntimeWarning)
             rest = np.nanmean(mean[:lead], axis=0)
-            disp = np.linalg.norm(mean - rest[None], axis=-1)
-            peak = np.nanmax(disp, axis=0)
-    delta = disp / np.where(peak > 0, peak, np.nan)[None]
+    window = max(1, int(round(NORMALISE_S * fps)))
+    disp, delta = normalized(mean - rest[None], window)
+    along, delta_along = normalized_along(mean - rest[None], window)
     return TrialAverage(du, fps, command, mean, spread, n_tr, rest, disp, delta, T,
-                        tuple(takes), tuple(warnings))
+                        tuple(takes), tuple(warnings), delta_along, along)
 
 
 def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:
@@ -133,6 +142,7 @@ def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:
         "n_trials": avg.n_trials.ravel().astype(np.int64),
         "displacement_mm": avg.displacement_mm.ravel(),
         "delta": avg.delta.ravel(),
+        "delta_along": (avg.delta_along if avg.delta_along is not None else avg.delta).ravel(),
     })
 
 
@@ -149,17 +159,7 @@ def noise_floor(rest_X: np.ndarray) -> tuple[np.ndarray, float]:
 
 def peak_displacement(avg: TrialAverage, smooth_s: float = 0.25) -> np.ndarray:
     """(M,) max over frames of |d| after a centred moving average of ``smooth_s`` seconds."""
-    w = max(1, int(round(smooth_s * avg.fps)))
-    d = avg.mean - avg.rest_mm[None]
-    ok = np.isfinite(d[..., 0])
-    kernel = np.ones(w)
-    from scipy.ndimage import convolve1d
-
-    num = convolve1d(np.where(ok[..., None], d, 0.0), kernel, axis=0, mode="nearest")
-    den = convolve1d(ok.astype(float), kernel, axis=0, mode="nearest")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        smooth = np.linalg.norm(num / den[..., None], axis=-1)
-    return np.nanmax(np.where(np.isfinite(smooth), smooth, -np.inf), axis=0)
+    return peak_length(avg.mean - avg.rest_mm[None], max(1, int(round(smooth_s * avg.fps))))
 
 
 def find_rejections(averages: list[TrialAverage], names, settings: RejectionSettings = RejectionSettings()

@@ -10,6 +10,8 @@
   the same order: index of the true point (marker order of ``face.parquet``; wand or ground marker
   index), -1 for a ghost, -2 for a merged blob;
 - ``face.parquet``: per DU and marker the true peak displacement vector and response parameters;
+- ``properties.csv``: the paper's indices of the true face per DU, defined as the estimator
+  defines them (``true_properties``);
 - ``truth.json``: the configuration, seed, hidden effect and its equation's parameters, the
   nose-bridge marker, the degraded camera, per-take metadata.
 
@@ -189,6 +191,57 @@ def _long(take: str, names, pos: np.ndarray) -> pd.DataFrame:
     })
 
 
+def virtual_rig_and_face(cfg: SimConfig):
+    """The true rig and face of a configuration (what ``simulate`` draws first)."""
+    master = np.random.default_rng(cfg.seed)
+    rig = make_rig(master, cfg.n_cameras, width=cfg.width, height=cfg.height)
+    face = make_face(master, cfg.n_markers, cfg.du_ids)
+    return master, rig, face
+
+
+def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: float | None = None,
+                    keep: dict | None = None) -> pd.DataFrame:
+    """The paper's indices of the true face, defined as the estimator defines them.
+
+    Per DU: the noise-free mean response to the paper's trapezoid (trial 1, the hidden effect
+    included), normalised like the pipeline's (``analysis.displacement.normalized_along``), fitted
+    by the same code (``analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
+    marker names, e.g. the ones the pipeline fitted) when given; else those whose true peak
+    displacement reaches ``min_displacement_mm`` (default: the pipeline's signal-to-noise rule at
+    the nominal noise, 20 x 0.025 mm / sqrt(trials), and at least 0.05 mm), the nose-bridge marker
+    left out as the pipeline leaves it.
+    """
+    if min_displacement_mm is None:
+        min_displacement_mm = max(0.05, 20.0 * 0.025 / np.sqrt(cfg.n_trials))
+    from analysis.displacement import normalized, normalized_along
+    from analysis.properties import du_properties
+    from mocap.reconstruct.trials import NORMALISE_S
+    from mocap.schedules import sample_commands
+
+    rows = []
+    for du in face.du_ids:
+        sched = trapezoid(du)
+        n_frames = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
+        pos = true_positions(face, cfg.effect, sched, n_frames, cfg.fps, 1, None)
+        d = pos - face.rest_mm[None]
+        window = max(1, int(round(NORMALISE_S * cfg.fps)))
+        disp, _ = normalized(d, window)
+        _, delta = normalized_along(d, window)
+        if keep is not None:
+            k = np.isin(np.asarray(face.marker_names), list(keep[du]))
+        else:
+            k = np.nanmax(disp, axis=0) >= min_displacement_mm
+            k[face.nose_bridge] = False
+        command = sample_commands(sched, [du], np.arange(n_frames) / cfg.fps)[:, 0]
+        p = du_properties(du, delta, command, cfg.fps, k, n_boot=0)
+        rows.append({"du": du, "name": DU_BY_ID[du].name, "alpha_fwd": p.fwd.alpha,
+                     "beta_fwd": p.fwd.beta, "alpha_bwd": p.bwd.alpha, "beta_bwd": p.bwd.beta,
+                     "sensitivity": p.sensitivity, "hysteresis": p.hysteresis,
+                     "dyssynchrony": p.dyssynchrony, "max_displacement_mm": float(np.nanmax(disp)),
+                     "n_markers": int(k.sum())})
+    return pd.DataFrame(rows)
+
+
 def simulate(cfg: SimConfig, out_dir: str | Path,
              progress: Callable[[str], None] | None = None) -> dict:
     """Write a virtual session to ``out_dir/session`` and its truth to ``out_dir/truth``.
@@ -200,9 +253,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     out = Path(out_dir)
     sess = out / "session"
     truth = out / "truth"
-    master = np.random.default_rng(cfg.seed)
-    rig = make_rig(master, cfg.n_cameras, width=cfg.width, height=cfg.height)
-    face = make_face(master, cfg.n_markers, cfg.du_ids)
+    master, rig, face = virtual_rig_and_face(cfg)
     takes = plan_takes(cfg, face)
     ext = "parquet" if cfg.take_format == "parquet" else "csv"
     files = {t.name: f"takes/{t.name}.{ext}" for t in takes}
@@ -286,6 +337,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)
     write_parquet(face_table(face), truth / "face.parquet")
+    write_csv(true_properties(cfg, face), truth / "properties.csv")
     info = {
         "generator": f"facemocap {__version__} mocap simulate",
         "config": _jsonable(dataclasses.asdict(cfg)),

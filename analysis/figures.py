@@ -1,0 +1,130 @@
+"""The paper's figures for a session (matplotlib, PNG, one file per figure).
+
+Each function takes results and a path, draws one figure with labelled axes and units, writes it
+atomically and returns the path. Only this module imports matplotlib (Agg backend).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from analysis.response import sigmoid
+from mocap.atomic import atomic_path
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png", bbox_inches="tight")
+    _plt().close(fig)
+    return Path(path)
+
+
+def displacement_field(path, du: int, name: str, rest_mm: np.ndarray, d_mm: np.ndarray,
+                       keep: np.ndarray, scale: float | None = None) -> Path:
+    """Arrows of the displacement at full command on the xy plane over a heat map of length."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.2, 7.0))
+    length = np.linalg.norm(d_mm, axis=1)
+    ok = np.isfinite(length)
+    if ok.sum() >= 3:
+        tri = ax.tricontourf(rest_mm[ok, 0], rest_mm[ok, 1], length[ok], levels=14, cmap="magma")
+        fig.colorbar(tri, ax=ax, label="displacement length |d| at command 255 (mm)")
+    peak = np.nanmax(length) if ok.any() else 1.0
+    s = scale or 12.0 / max(peak, 1e-9)  # the longest arrow spans about a marker spacing
+    k = ok & keep
+    ax.quiver(rest_mm[k, 0], rest_mm[k, 1], d_mm[k, 0] * s, d_mm[k, 1] * s, angles="xy",
+              scale_units="xy", scale=1.0, color="cyan", width=0.006)
+    ax.scatter(rest_mm[~keep & ok, 0], rest_mm[~keep & ok, 1], marker="x", c="w", s=14,
+               label="left out")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"DU {du} ({name}): displacement field\narrows x{s:.1f}")
+    if (~keep & ok).any():
+        ax.legend(loc="lower right", fontsize=7)
+    return _save(fig, path)
+
+
+def linearity_bars(path, dus, means, stds) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(max(4, 0.5 * len(dus) + 2), 3.6))
+    x = np.arange(len(dus))
+    ax.bar(x, means, yerr=stds, capsize=3, color="tab:blue", alpha=0.8)
+    ax.set_xticks(x, [str(d) for d in dus])
+    ax.set_xlabel("DU")
+    ax.set_ylabel("spatial linearity (PC1 share, 1)")
+    ax.set_ylim(0, 1.05)
+    ax.set_title("Spatial linearity per DU (mean and std over markers)")
+    return _save(fig, path)
+
+
+def response_curves(path, du, name, fps, delta, keep, ramps, props) -> Path:
+    """Measured forward/backward delta vs command (mean and spread over markers), fitted sigmoids."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 4.0))
+    cgrid = np.linspace(0, 255, 256)
+    for ramp, colour, label, par in ((ramps[0], "tab:blue", "forward", props.fwd),
+                                     (ramps[1], "tab:red", "backward", props.bwd)):
+        sl = slice(ramp.start, ramp.stop)
+        t = np.arange(ramp.start, ramp.stop) / fps
+        c = ramp.p0 + ramp.p1 * t
+        d = delta[sl][:, keep]
+        with np.errstate(invalid="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                m, s = np.nanmean(d, axis=1), np.nanstd(d, axis=1)
+        ax.fill_between(c, m - s, m + s, color=colour, alpha=0.2)
+        ax.plot(c, m, color=colour, lw=1, alpha=0.7, label=f"measured {label} (mean +- sd)")
+        ax.plot(cgrid, sigmoid(cgrid, par.alpha, par.beta), color=colour, lw=2.2,
+                label=f"R_{label[:3]}: alpha {par.alpha:.3f}, beta {par.beta:.0f}")
+    ax.set_xlim(0, 255)
+    ax.set_ylim(-0.05, 1.1)
+    ax.set_xlabel("command (0..255)")
+    ax.set_ylabel("normalised displacement delta (1)")
+    ax.set_title(f"DU {du} ({name}): hysteresis {props.hysteresis:.0f}, dyssynchrony "
+                 f"{props.dyssynchrony:.3f}")
+    ax.legend(fontsize=7, loc="upper left")
+    return _save(fig, path)
+
+
+def property_chart(path, dus, alphas, hysteresis, dyssynchrony, feedback) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.0, 4.6))
+    sc = ax.scatter(alphas, hysteresis, c=dyssynchrony, cmap="viridis", s=80,
+                    edgecolors=["k" if f else "none" for f in feedback], linewidths=1.5)
+    for d, a, h in zip(dus, alphas, hysteresis):
+        ax.annotate(str(d), (a, h), textcoords="offset points", xytext=(5, 4), fontsize=9)
+    fig.colorbar(sc, ax=ax, label="dyssynchrony gamma (1)")
+    ax.set_xlabel("sensitivity alpha (1/command unit)")
+    ax.set_ylabel("hysteresis beta_fwd - beta_bwd (command units)")
+    ax.set_title("Property chart (black edge: position feedback; smaller is better)")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def motion_result(path, title, ev) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    ax.plot(ev.t, ev.ideal, color="k", lw=2, label="plan P(t)")
+    ax.fill_between(ev.t, ev.mean - ev.std, ev.mean + ev.std, color="tab:purple", alpha=0.2)
+    ax.plot(ev.t, ev.mean, color="tab:purple", lw=1.5, label="realized (mean +- sd over markers)")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("normalised displacement (1)")
+    ax.set_title(f"{title}\nRMS fwd {ev.rms_forward:.3f}, bwd {ev.rms_backward:.3f}, "
+                 f"lag {ev.lag_s * 1000:.0f} ms")
+    ax.legend(fontsize=8)
+    ax.set_ylim(-0.05, 1.15)
+    return _save(fig, path)

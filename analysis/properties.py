@@ -1,0 +1,177 @@
+"""The paper's static response properties per DU (METHOD.md, "Static response").
+
+Segmentation: the forward (rising) and backward (falling) ramps are found from the command
+series: their step changes are fitted by a straight line ``c(t) = p0 + p1 t`` (for the paper's
+trapezoid ``c = 255 t / T_s`` forward), and the fit window runs from one step before the ramp's
+first change to one step after its last (so both end plateaus are included).
+
+Fits: the normalised displacement delta_m(t) of the markers kept (not rejected) in a window is
+fitted against time by a logistic ``1 / (1 + exp(-a (t - b)))`` pooled over the markers (and per
+marker), then converted to command with the ramp's line: ``alpha = a / p1``, ``beta = p0 +
+p1 b`` (METHOD.md's t = T_s c / 255 for the paper's schedule).
+
+Indices: sensitivity alpha_n = (alpha_fwd + alpha_bwd) / 2; hysteresis beta_fwd - beta_bwd
+(command units; positive when the backward curve stays high); dyssynchrony gamma = the mean over
+the take's frames of the sample standard deviation of delta_m(t) over the markers
+(``dyssynchrony_raw``, the paper's formula). Measurement noise inflates that spread: a marker
+moving 0.1 mm with 0.01 mm of noise on its trial mean has 0.1 of noise in its delta. Given each
+marker's noise variance in delta units, ``dyssynchrony`` subtracts the markers' mean noise
+variance from the variance over markers at every frame (floored at 0) before the square root:
+an estimate of the noise-free index.
+
+The fits use ``delta_along`` when given (the displacement along each marker's principal
+direction, whose noise has zero mean), METHOD.md's |d| / max |d| otherwise.
+
+Uncertainty: a bootstrap over markers (``n_boot`` replicates, markers resampled with
+replacement, the pooled fits redone as weighted fits) gives 2.5 / 97.5 % intervals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from analysis.logistic_fit import fit_logistic
+
+
+@dataclass(frozen=True)
+class Ramp:
+    """A ramp's fit window (frame slice) and its command line c(t) = p0 + p1 t."""
+
+    start: int
+    stop: int
+    p0: float
+    p1: float
+
+    @property
+    def direction(self) -> str:
+        return "forward" if self.p1 > 0 else "backward"
+
+
+@dataclass(frozen=True)
+class SigmoidParams:
+    alpha: float
+    beta: float
+
+
+@dataclass(frozen=True)
+class DUProperties:
+    du: int
+    fwd: SigmoidParams
+    bwd: SigmoidParams
+    sensitivity: float
+    hysteresis: float
+    dyssynchrony: float
+    dyssynchrony_raw: float
+    n_markers: int
+    ci: dict  # name -> (lo, hi)
+    per_marker: dict  # alpha_fwd, beta_fwd, alpha_bwd, beta_bwd (n_markers,) arrays (NaN for left-out)
+    ramps: tuple[Ramp, Ramp]
+
+
+def find_ramps(command: np.ndarray, fps: float) -> tuple[Ramp, Ramp]:
+    """The forward and backward ramps of a trapezoid-like command series (n_frames,)."""
+    c = np.asarray(command, float)
+    change = np.flatnonzero(np.diff(c) != 0) + 1
+    if change.size < 2:
+        raise ValueError("response take: the command never ramps (fewer than two changes)")
+    up = change[c[change] > c[change - 1]]
+    down = change[c[change] < c[change - 1]]
+    if up.size < 2 or down.size < 2:
+        raise ValueError("response take: expected a rising and a falling ramp of several steps")
+    step = int(np.median(np.diff(change)))
+
+    def line(frames):
+        frames = np.r_[frames[0] - step, frames]
+        t = frames / fps
+        vals = c[np.clip(frames, 0, c.size - 1)]
+        p1, p0 = np.polyfit(t, vals, 1)
+        return p0, p1
+
+    p0f, p1f = line(up)
+    p0b, p1b = line(down)
+    fwd = Ramp(max(up[0] - step, 0), min(up[-1] + step, c.size), p0f, p1f)
+    bwd = Ramp(max(down[0] - step, 0), min(down[-1] + step, c.size), p0b, p1b)
+    return fwd, bwd
+
+
+def dyssynchrony(delta: np.ndarray, keep: np.ndarray, noise_var: np.ndarray | None = None,
+                 smooth_frames: int = 30) -> float:
+    """Mean over frames of the std over kept markers of delta (n_frames, n_markers).
+
+    ``noise_var`` (n_markers,): each marker's noise variance in delta units; when given, the
+    variance over markers is first averaged over ``smooth_frames`` frames (so its sampling
+    fluctuation does not survive the floor at 0 as a bias), then the markers' mean noise
+    variance is subtracted, floored at 0, and the square root taken.
+    """
+    d = delta[:, keep]
+    import warnings
+
+    from analysis.displacement import smoothed
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        var = np.nanvar(d, axis=1, ddof=1)
+        if noise_var is not None:
+            var = smoothed(var, smooth_frames)
+            var = np.clip(var - np.nanmean(np.asarray(noise_var)[keep]), 0.0, None)
+        return float(np.nanmean(np.sqrt(var)))
+
+
+def _pooled(t, delta_w, weights=None):
+    """Pooled logistic fit over markers: t (n,), delta_w (n, M); weights (B, M) or None."""
+    n, M = delta_w.shape
+    x = np.tile(t, M)
+    y = delta_w.T.ravel()[None]
+    if weights is None:
+        return fit_logistic(x, y)
+    W = np.repeat(weights, n, axis=1)
+    first = fit_logistic(x, y)
+    return fit_logistic(x, np.broadcast_to(y, W.shape), W,
+                        a0=np.full(W.shape[0], first.a[0]), b0=np.full(W.shape[0], first.b[0]))
+
+
+def du_properties(du: int, delta: np.ndarray, command: np.ndarray, fps: float, keep: np.ndarray,
+                  *, n_boot: int = 200, seed: int = 0,
+                  noise_var: np.ndarray | None = None) -> DUProperties:
+    """Fit a DU's forward and backward responses and compute its indices.
+
+    delta : (n_frames, n_markers) normalised displacement (trial mean).
+    command : (n_frames,) the DU's command series.
+    keep : (n_markers,) bool, markers not rejected for this DU.
+    noise_var : optional (n_markers,) noise variance of each marker's delta (see module doc).
+    """
+    fwd, bwd = find_ramps(command, fps)
+    keep = np.asarray(keep, bool) & np.any(np.isfinite(delta), axis=0)
+    idx = np.flatnonzero(keep)
+    rng = np.random.default_rng(seed)
+    boot_w = rng.multinomial(idx.size, np.full(idx.size, 1.0 / idx.size), size=n_boot).astype(float)
+    out, per_marker, boots = {}, {}, {}
+    for name, ramp in (("fwd", fwd), ("bwd", bwd)):
+        t = np.arange(ramp.start, ramp.stop) / fps
+        dw = delta[ramp.start: ramp.stop][:, idx]
+        pooled = _pooled(t, dw)
+        out[name] = SigmoidParams(float(pooled.a[0] / ramp.p1), float(ramp.p0 + ramp.p1 * pooled.b[0]))
+        fits = fit_logistic(t, dw.T)
+        am = np.full(delta.shape[1], np.nan)
+        bm = np.full(delta.shape[1], np.nan)
+        am[idx] = fits.a / ramp.p1
+        bm[idx] = ramp.p0 + ramp.p1 * fits.b
+        per_marker[f"alpha_{name}"] = am
+        per_marker[f"beta_{name}"] = bm
+        if n_boot:
+            bf = _pooled(t, dw, boot_w)
+            boots[f"alpha_{name}"] = bf.a / ramp.p1
+            boots[f"beta_{name}"] = ramp.p0 + ramp.p1 * bf.b
+    sens = 0.5 * (out["fwd"].alpha + out["bwd"].alpha)
+    hyst = out["fwd"].beta - out["bwd"].beta
+    ci = {}
+    if n_boot:
+        boots["sensitivity"] = 0.5 * (boots["alpha_fwd"] + boots["alpha_bwd"])
+        boots["hysteresis"] = boots["beta_fwd"] - boots["beta_bwd"]
+        for k, v in boots.items():
+            ci[k] = (float(np.nanpercentile(v, 2.5)), float(np.nanpercentile(v, 97.5)))
+    return DUProperties(du, out["fwd"], out["bwd"], float(sens), float(hyst),
+                        dyssynchrony(delta, keep, noise_var), dyssynchrony(delta, keep),
+                        int(idx.size), ci, per_marker, (fwd, bwd))

@@ -1,0 +1,153 @@
+"""All of METHOD.md's analyses for one session, from the trial-averaged responses.
+
+Pure computation: takes the reconstruction's results, returns tables and fitted models; the
+pipeline writes them (properties.csv, linearity.csv, marker_properties.csv, figures).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from analysis.design import PlanTiming
+from analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
+from analysis.linearity import spatial_linearity
+from analysis.plans import PLAN_NAMES
+from analysis.properties import DUProperties, du_properties
+
+MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
+
+PROPERTY_COLUMNS = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity",
+                    "hysteresis", "dyssynchrony", "linearity_mean", "linearity_std",
+                    "max_displacement_mm", "n_markers"]
+
+
+@dataclass
+class SessionAnalysis:
+    properties: pd.DataFrame
+    linearity: pd.DataFrame
+    marker_properties: pd.DataFrame
+    du: dict = field(default_factory=dict)  # du -> DUProperties
+    keep: dict = field(default_factory=dict)  # du -> (M,) bool, not rejected
+    fitted: dict = field(default_factory=dict)  # du -> (M,) bool, in the response fits
+    fields_mm: dict = field(default_factory=dict)  # du -> (M, 3) displacement at full command
+    motions: list = field(default_factory=list)  # (take, plan, MotionEvaluation)
+
+
+def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
+    """(M,) True for markers not rejected for ``du`` (nor for every DU)."""
+    names = list(names)
+    bad = rejections[rejections["du"].isna() | ((rejections["du"] == du) if du is not None else False)]
+    out = np.ones(len(names), bool)
+    for m in bad["marker"]:
+        if m in names:
+            out[names.index(m)] = False
+    return out
+
+
+def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
+                      *, n_boot: int = 200, noise_mm: np.ndarray | None = None) -> SessionAnalysis:
+    """Linearity, fitted responses and indices for every DU's averaged response.
+
+    noise_mm : optional (M,) per-marker measurement noise sd (mm, per axis; the rest take's
+        noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the response
+        fits and indices use only markers whose peak displacement is at least ``MIN_SNR`` times
+        that noise (below it a normalised curve is mostly noise: its "peak" is a noise maximum),
+        and the dyssynchrony is corrected for the remaining noise (``analysis.properties``).
+    """
+    prop_rows, lin_rows, marker_rows = [], [], []
+    result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
+    for avg in averages:
+        keep = kept_markers(rejections, names, avg.du)
+        pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])
+        lin = spatial_linearity(pooled)
+        lin_c = spatial_linearity(pooled, None if noise_mm is None else np.asarray(noise_mm) ** 2)
+        delta = avg.delta_along if avg.delta_along is not None else avg.delta
+        noise_var = None
+        if noise_mm is not None and avg.along_mm is not None:
+            n_tr = np.nanmedian(np.where(avg.n_trials > 0, avg.n_trials, np.nan), axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                peak_mm = np.nanmedian(np.where(np.abs(delta) > 0.5, avg.along_mm / delta, np.nan),
+                                       axis=0)
+                noise_var = (np.asarray(noise_mm) ** 2 / np.maximum(n_tr, 1)) / peak_mm**2
+        fit_keep = keep
+        if noise_mm is not None:
+            se = np.asarray(noise_mm) / np.sqrt(np.maximum(
+                np.nanmedian(np.where(avg.n_trials > 0, avg.n_trials, np.nan), axis=0), 1))
+            peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm,
+                                      -np.inf), axis=0)
+            fit_keep = keep & (peak >= MIN_SNR * se)
+        props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=n_boot,
+                              noise_var=noise_var)
+        hold = avg.command == avg.command.max()
+        field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
+        peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
+        result.du[avg.du] = props
+        result.keep[avg.du] = keep
+        result.fitted[avg.du] = fit_keep
+        result.fields_mm[avg.du] = field_mm
+        row = {"du": avg.du, "name": du_names.get(avg.du, f"DU{avg.du}"),
+               "alpha_fwd": props.fwd.alpha, "beta_fwd": props.fwd.beta,
+               "alpha_bwd": props.bwd.alpha, "beta_bwd": props.bwd.beta,
+               "sensitivity": props.sensitivity, "hysteresis": props.hysteresis,
+               "dyssynchrony": props.dyssynchrony,
+               "linearity_mean": float(np.nanmean(lin[keep])), "linearity_std": float(np.nanstd(lin[keep])),
+               "max_displacement_mm": float(np.nanmax(peak[keep])) if keep.any() else np.nan,
+               "n_markers": int(props.n_markers),
+               "linearity_corrected_mean": float(np.nanmean(lin_c[keep])),
+               "dyssynchrony_raw": props.dyssynchrony_raw}
+        for k, (lo, hi) in props.ci.items():
+            row[f"{k}_ci_lo"] = lo
+            row[f"{k}_ci_hi"] = hi
+        prop_rows.append(row)
+        for m, name in enumerate(names):
+            lin_rows.append({"du": avg.du, "marker": name, "linearity": lin[m],
+                             "linearity_corrected": lin_c[m],
+                             "max_displacement_mm": peak[m], "kept": bool(keep[m])})
+            pm = props.per_marker
+            marker_rows.append({"du": avg.du, "marker": name, "alpha_fwd": pm["alpha_fwd"][m],
+                                "beta_fwd": pm["beta_fwd"][m], "alpha_bwd": pm["alpha_bwd"][m],
+                                "beta_bwd": pm["beta_bwd"][m],
+                                "sensitivity": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
+                                "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
+                                "max_displacement_mm": peak[m], "kept": bool(keep[m]),
+                                "fitted": bool(fit_keep[m])})
+    result.properties = pd.DataFrame(prop_rows, columns=PROPERTY_COLUMNS + [
+        c for c in (prop_rows[0].keys() if prop_rows else []) if c not in PROPERTY_COLUMNS])
+    result.linearity = pd.DataFrame(lin_rows, columns=["du", "marker", "linearity",
+                                                       "max_displacement_mm", "linearity_corrected",
+                                                       "kept"])
+    result.marker_properties = pd.DataFrame(marker_rows)
+    return result
+
+
+def plan_timing_from_rows(rows: pd.DataFrame, base: PlanTiming = PlanTiming()) -> PlanTiming:
+    """The paper's plan timing, starting at the command file's first row after 0 s (a designed
+    file has a row at every command step, even where the value repeats)."""
+    later = rows["time_s"][rows["time_s"] > 1e-9]
+    start = float(later.min()) if len(later) else base.start_s
+    return PlanTiming(start_s=start, n_steps=base.n_steps, step_s=base.step_s,
+                      hold_s=base.hold_s, tail_s=base.tail_s)
+
+
+def evaluate_plan_take(X: np.ndarray, command: np.ndarray, rows: pd.DataFrame, fps: float,
+                       plan: str, keep: np.ndarray) -> MotionEvaluation:
+    """Evaluate a motion take played from plan A-E (paper timing) against its ideal."""
+    timing = plan_timing_from_rows(rows)
+    n = X.shape[0]
+    t = np.arange(n) / fps
+    ideal = timing.ideal(t, plan)
+    delta = realized_delta(X, command)
+    f0 = int(round(timing.start_s * fps))
+    f1 = int(round((timing.start_s + timing.duration_s) * fps))
+    b0 = int(round((timing.start_s + timing.duration_s + timing.hold_s) * fps))
+    b1 = int(round((timing.start_s + 2 * timing.duration_s + timing.hold_s) * fps))
+    peak = np.nanmax(np.linalg.norm(X - np.nanmean(X[: max(f0, 1)], axis=0)[None], axis=-1), axis=0)
+    keep = keep & (peak >= 0.05)
+    return evaluate_motion(delta, ideal, fps, slice(f0, min(f1, n)), slice(b0, min(b1, n)), keep)
+
+
+def is_plan(label: str | None) -> bool:
+    return label is not None and label.upper() in PLAN_NAMES
