@@ -128,3 +128,35 @@ def motion_result(path, title, ev) -> Path:
     ax.legend(fontsize=8)
     ax.set_ylim(-0.05, 1.15)
     return _save(fig, path)
+
+
+def audit_visibility(path, markers, cameras, fraction) -> Path:
+    """Heat map: share of each marker's reconstructed frames each camera contributed to."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(max(6, 0.12 * len(markers) + 2), 2.8))
+    im = ax.imshow(fraction, aspect="auto", cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+    ax.set_yticks(range(len(cameras)), cameras)
+    step = max(1, len(markers) // 30)
+    ax.set_xticks(range(0, len(markers), step), markers[::step], rotation=90, fontsize=6)
+    ax.set_xlabel("marker")
+    fig.colorbar(im, ax=ax, label="share of frames seen (1)")
+    ax.set_title("Visibility per marker and camera")
+    return _save(fig, path)
+
+
+def audit_noise_map(path, rest_mm, noise_mm, flagged, names) -> Path:
+    """Noise floor per marker on the face (xy plane), flagged markers circled."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 6.5))
+    sc = ax.scatter(rest_mm[:, 0], rest_mm[:, 1], c=noise_mm, cmap="inferno_r", s=60,
+                    vmin=0, vmax=np.nanpercentile(noise_mm, 95) * 1.5 if np.isfinite(noise_mm).any() else 1)
+    for n in flagged:
+        i = names.index(n)
+        ax.scatter(rest_mm[i, 0], rest_mm[i, 1], s=220, facecolors="none", edgecolors="tab:blue", lw=2)
+        ax.annotate(n, rest_mm[i, :2], textcoords="offset points", xytext=(6, 6), fontsize=8)
+    fig.colorbar(sc, ax=ax, label="noise floor, per-axis sd at rest (mm)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title("Noise per marker (flagged markers circled)")
+    return _save(fig, path)

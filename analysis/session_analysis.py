@@ -66,16 +66,18 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         lin_c = spatial_linearity(pooled, None if noise_mm is None else np.asarray(noise_mm) ** 2)
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
         noise_var = None
+        n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
         if noise_mm is not None and avg.along_mm is not None:
-            n_tr = np.nanmedian(np.where(avg.n_trials > 0, avg.n_trials, np.nan), axis=0)
-            with np.errstate(invalid="ignore", divide="ignore"):
+            import warnings
+
+            with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # markers that never reach 0.5
                 peak_mm = np.nanmedian(np.where(np.abs(delta) > 0.5, avg.along_mm / delta, np.nan),
                                        axis=0)
-                noise_var = (np.asarray(noise_mm) ** 2 / np.maximum(n_tr, 1)) / peak_mm**2
+                noise_var = (np.asarray(noise_mm) ** 2 / n_tr) / peak_mm**2
         fit_keep = keep
         if noise_mm is not None:
-            se = np.asarray(noise_mm) / np.sqrt(np.maximum(
-                np.nanmedian(np.where(avg.n_trials > 0, avg.n_trials, np.nan), axis=0), 1))
+            se = np.asarray(noise_mm) / np.sqrt(n_tr)
             peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm,
                                       -np.inf), axis=0)
             fit_keep = keep & (peak >= MIN_SNR * se)

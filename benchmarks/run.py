@@ -12,7 +12,9 @@ Stages:
 - ``calibrate``: wand calibration of the paper session's rig (target: under 20 s on 2 cores);
 - ``triangulate``: known correspondences, 2 M points x 6 cameras (target >= 3 M points/s);
 - ``reconstruct``: correspondence, triangulation and labeling of every face take (targets: the
-  whole preset under 3 minutes, >= 300 k points/s, under 8 GB).
+  whole preset under 3 minutes, >= 300 k points/s, under 8 GB);
+- ``run``: ``mocap run`` end to end (target: under 5 minutes, 8 GB), and the paper indices
+  against the simulator's truth (same markers, same estimator on the noise-free response).
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ HERE = Path(__file__).resolve().parent
 CACHE = HERE / "cache" / "paper"
 TARGETS = {"simulate": {"seconds": 600, "peak_gb": 4.0}, "calibrate": {"seconds": 20},
            "triangulate": {"kernel_points_per_s": 3_000_000},
-           "reconstruct": {"reconstruct_seconds": 180, "points_per_s": 300_000, "peak_gb": 8.0}}
+           "reconstruct": {"reconstruct_seconds": 180, "points_per_s": 300_000, "peak_gb": 8.0},
+           "run": {"end_to_end_seconds": 300, "peak_gb": 8.0}}
 
 
 def stage_simulate() -> dict:
@@ -110,8 +113,45 @@ def stage_reconstruct() -> dict:
             "blobs_per_s": round(blobs / dt)}
 
 
+def stage_run() -> dict:
+    """``mocap run`` end to end on the paper session, and its properties against the truth."""
+    import numpy as np
+    import pandas as pd
+
+    from mocap.pipeline import run_session
+    from mocap.simulate import preset
+    from mocap.simulate.session_writer import true_properties, virtual_rig_and_face
+
+    out = HERE / "cache" / "paper_run"
+    t0 = time.perf_counter()
+    res = run_session(CACHE / "session", out)
+    dt = time.perf_counter() - t0
+    cfg = preset("paper", seed=2018)
+    _, _, face = virtual_rig_and_face(cfg)
+    mp = pd.read_csv(out / "marker_properties.csv")
+    fitted = {du: set(g["marker"][g["fitted"]]) for du, g in mp.groupby("du")}
+    truth = true_properties(cfg, face, keep=fitted).set_index("du")
+    est = pd.read_csv(out / "properties.csv").set_index("du")
+    err = {
+        "alpha_rel_max": float(np.max(np.abs(est["sensitivity"] / truth["sensitivity"] - 1))),
+        "beta_fwd_abs_max": float(np.max(np.abs(est["beta_fwd"] - truth["beta_fwd"]))),
+        "beta_bwd_abs_max": float(np.max(np.abs(est["beta_bwd"] - truth["beta_bwd"]))),
+        "hysteresis_abs_max": float(np.max(np.abs(est["hysteresis"] - truth["hysteresis"]))),
+        "dyssynchrony_rel_max": float(np.max(np.abs(est["dyssynchrony"] / truth["dyssynchrony"] - 1))),
+    }
+    feedback = est.loc[[1, 2, 12]]
+    others = est.drop(index=[1, 2, 12])
+    return {"end_to_end_seconds": round(dt, 1), "timings": res.summary["timings_s"],
+            "errors_vs_truth": {k: round(v, 4) for k, v in err.items()},
+            "feedback_alpha_max": round(float(feedback["sensitivity"].max()), 4),
+            "open_loop_alpha_min": round(float(others["sensitivity"].min()), 4),
+            "calibration": res.summary.get("calibration"),
+            "noise_floor_mm": res.summary.get("noise_floor_mm"),
+            "rejections": res.summary.get("rejections")}
+
+
 STAGES = {"simulate": stage_simulate, "calibrate": stage_calibrate,
-          "triangulate": stage_triangulate, "reconstruct": stage_reconstruct}
+          "triangulate": stage_triangulate, "reconstruct": stage_reconstruct, "run": stage_run}
 
 
 def run_stage(name: str) -> dict:

@@ -8,9 +8,10 @@ adjustment uses at most ``max_frames`` frames, each seen by at least two cameras
 the wand rarely keeps all its frames), then frames spread evenly over the take to fill up.
 
 Outliers (mislabeled or merged blobs): solve with a soft-L1 loss (``f_scale`` 2 px), drop every
-sighting whose worst marker residual exceeds ``max(6 sigma, 0.6 px)`` (sigma estimated robustly
-from the median residual), re-solve by plain least squares (efficient at Gaussian noise), and
-repeat the trim once.
+sighting whose worst marker residual exceeds ``max(6 sigma_c, 0.6 px)`` (sigma_c estimated
+robustly from the median residual of its camera, so a noisy camera is not stripped of its
+sightings), re-solve by plain least squares (efficient at Gaussian noise), and repeat the trim
+once.
 """
 
 from __future__ import annotations
@@ -122,7 +123,8 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     used = in_ba.copy()
     result = None
     t1 = time.perf_counter()
-    for stage, (loss, f_scale) in enumerate([("soft_l1", 2.0), ("linear", 1.0), ("linear", 1.0)]):
+    stages = [("soft_l1", 2.0), ("linear", 1.0), ("linear", 1.0)]
+    for stage, (loss, f_scale) in enumerate(stages):
         idx = np.flatnonzero(used)
         problem = WandProblem(
             obs_cam=obs.camera[idx], obs_frame=np.searchsorted(frames, obs.frame[idx]),
@@ -130,15 +132,18 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
             n_cameras=len(cams), fixed_camera=fixed)
         result = solve_schur(problem, x0, loss=loss, f_scale=f_scale)
         x0 = np.concatenate([result.cameras.ravel(), result.frames.ravel()])
-        worst = np.linalg.norm(result.residuals, axis=-1).max(axis=1)  # per sighting
-        sigma = np.median(np.linalg.norm(result.residuals, axis=-1)) / 1.1774
-        threshold = max(6.0 * sigma, 0.6)
+        norms = np.linalg.norm(result.residuals, axis=-1)  # (n_sightings, n_w)
+        worst = norms.max(axis=1)
+        # robust sigma per camera (a noisier camera keeps its wider spread)
+        sigma = np.array([np.median(norms[problem.obs_cam == c]) / 1.1774
+                          if np.any(problem.obs_cam == c) else 0.0 for c in range(len(cams))])
+        threshold = np.maximum(6.0 * sigma, 0.6)[problem.obs_cam]
         bad = worst > threshold
         say(f"bundle adjustment stage {stage + 1} ({loss}): {idx.size} sightings, "
             f"rms {np.sqrt(np.mean(result.residuals**2)):.3f} px, {int(bad.sum())} over "
-            f"{threshold:.2f} px")
-        if stage >= 1 and not bad.any():
-            break
+            f"6 sigma of their camera")
+        if stage == len(stages) - 1 or (stage >= 1 and not bad.any()):
+            break  # the residuals below belong to exactly the sightings in ``used``
         used[idx[bad]] = False
     timings["bundle_adjustment"] = time.perf_counter() - t1
     rig = rig_from_vectors(result.cameras, rig0)

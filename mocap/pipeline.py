@@ -59,6 +59,7 @@ class RunSettings:
     labels: LabelSettings = LabelSettings()
     rejections: RejectionSettings = RejectionSettings()
     fill_gaps_frames: int = 0  # interpolate gaps up to this many frames (always flagged)
+    analyze: bool = True  # the paper's analyses and figures (off for an audit-only run)
 
 
 @dataclass
@@ -70,6 +71,7 @@ class Reconstruction:
     stats: dict
     noise_floor_mm: float | None
     noise_per_marker_mm: np.ndarray | None
+    capture: dict = field(default_factory=dict)  # per camera / marker counts for the audit
 
 
 @dataclass
@@ -108,13 +110,30 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
         markers = identify_markers(pts, _take_frame_count(blobs), session.marker_template,
                                    settings.labels)
         say(f"{len(markers.names)} markers found on the rest take '{rest[0].name}'")
+        M = len(markers.names)
+        capture = {"camera_blobs": np.zeros(len(rig), np.int64),
+                   "camera_labeled_blobs": np.zeros(len(rig), np.int64),
+                   "views": np.zeros((len(rig), M), np.int64),
+                   "marker_frames": np.zeros(M, np.int64), "frames": 0,
+                   "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
         for take in face_takes:
             blobs = session.read_take(take.name)
             n_frames = _take_frame_count(blobs)
             pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
-            lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames)
+            lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames,
+                             n_blobs=len(blobs))
             lab.stats["blobs"] = int(len(blobs))
             lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
+            cam_idx = blobs["camera"].map({c: i for i, c in enumerate(rig.ids)}).to_numpy()
+            capture["camera_blobs"] += np.bincount(cam_idx, minlength=len(rig))
+            capture["camera_labeled_blobs"] += np.bincount(cam_idx[lab.blob_marker >= 0],
+                                                           minlength=len(rig))
+            capture["views"] += lab.views
+            capture["marker_frames"] += np.isfinite(lab.X[..., 0]).sum(axis=0)
+            capture["frames"] += n_frames
+            missing = np.isnan(lab.X[..., 0])
+            capture["gaps"] += _gap_counts(missing)
+            capture["longest_gap"] = np.maximum(capture["longest_gap"], _longest_gaps(missing))
             write_parquet(trajectories_frame(lab, markers.names),
                           out / "trajectories" / f"{take.name}.parquet")
             stats["takes"][take.name] = lab.stats
@@ -141,7 +160,37 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
         noise, noise_mean = noise_floor(dense[rest[0].name].X)
     total = sum(s.get("labeled_points", s.get("points", 0)) for s in stats["takes"].values())
     stats["labeled_points"] = int(total)
-    return Reconstruction(markers, dense, stats, noise_mean, noise)
+    return Reconstruction(markers, dense, stats, noise_mean, noise,
+                          capture if session.dimension == "2d" else _capture_3d(dense, markers))
+
+
+def _gap_counts(missing: np.ndarray) -> np.ndarray:
+    """(M,) number of interior runs of missing frames per marker; missing (n_frames, M)."""
+    starts = missing[1:] & ~missing[:-1]
+    return starts.sum(axis=0) + missing[0]
+
+
+def _longest_gaps(missing: np.ndarray) -> np.ndarray:
+    """(M,) longest run of missing frames per marker (vectorised run lengths)."""
+    n = missing.shape[0]
+    # the run length at a missing frame is its distance to the last frame that was seen
+    idx = np.where(~missing, np.arange(n)[:, None], -1)
+    run_len = np.arange(n)[:, None] - np.maximum.accumulate(idx, axis=0)
+    return np.where(missing, run_len, 0).max(axis=0)
+
+
+def _capture_3d(dense: dict, markers: MarkerSet) -> dict:
+    """Gap statistics of labeled 3D input (no cameras)."""
+    M = len(markers.names)
+    out = {"marker_frames": np.zeros(M, np.int64), "frames": 0,
+           "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
+    for lab in dense.values():
+        missing = np.isnan(lab.X[..., 0])
+        out["marker_frames"] += (~missing).sum(axis=0)
+        out["frames"] += missing.shape[0]
+        out["gaps"] += _gap_counts(missing)
+        out["longest_gap"] = np.maximum(out["longest_gap"], _longest_gaps(missing))
+    return out
 
 
 def average_responses(session: Session, recon: Reconstruction) -> list[TrialAverage]:
@@ -201,7 +250,12 @@ def run_analyses(session: Session, recon: Reconstruction, averages, rejections, 
         X = df[["x", "y", "z"]].to_numpy().reshape(n_frames, len(names), 3)
         rows = session.read_commands(take.name)
         cmd = command_matrix(rows, session.fps, n_frames, list(session.du_ids))
-        ev = evaluate_plan_take(X, cmd, rows, session.fps, take.plan, keep_all)
+        # evaluated over the markers its DUs move well (those in their response fits)
+        keep = keep_all.copy()
+        fitted = [res.fitted[d] for d in sorted(set(rows["du"])) if d in res.fitted]
+        if fitted:
+            keep &= np.any(fitted, axis=0)
+        ev = evaluate_plan_take(X, cmd, rows, session.fps, take.plan, keep)
         res.motions.append((take.name, take.plan.upper(), ev))
         figures.motion_result(fig / f"motion_{take.name}.png", f"{take.name} (plan {take.plan})", ev)
     say(f"analyses: {len(averages)} DUs, {len(res.motions)} motion takes evaluated; figures in {fig}")
@@ -275,11 +329,21 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
 
     # --- analyses and figures -> properties.csv, linearity.csv, figures/ ---------------------
     analysis_result = None
-    if averages:
+    if averages and settings.analyze:
         t = time.perf_counter()
         analysis_result = run_analyses(session, recon, averages, rejections, out, say)
         timings["analyze_s"] = time.perf_counter() - t
         stages.append("analyze")
+
+    # --- capture-quality audit -> audit.json, audit.md --------------------------------------
+    t = time.perf_counter()
+    from mocap.audit import write_audit
+
+    partial = RunResult(session=session, out_dir=out, calibration=calibration,
+                        reconstruction=recon, averages=averages, rejections=rejections)
+    audit = write_audit(partial, out)
+    timings["audit_s"] = time.perf_counter() - t
+    stages.append("audit")
 
     summary = {
         "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
@@ -295,6 +359,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
         "reconstruction": recon.stats,
         "noise_floor_mm": recon.noise_floor_mm,
         "rejections": {str(k): int(v) for k, v in rejections["reason"].value_counts().items()},
+        "audit": {"verdict": audit["verdict"], "flagged": audit["flagged"]},
     }
     if analysis_result is not None:
         summary["properties"] = analysis_result.properties[

@@ -60,7 +60,10 @@ class LabeledTake:
 
     X : (n_frames, n_markers, 3) mm, NaN where not reconstructed; n_cameras : (n_frames,
     n_markers) int (0 where missing); residual_px : (n_frames, n_markers) (NaN where missing);
-    interpolated : (n_frames, n_markers) bool, gap samples filled by interpolation.
+    interpolated : (n_frames, n_markers) bool, gap samples filled by interpolation;
+    views : (n_cameras_rig, n_markers) int, frames in which each camera contributed to each
+    marker (None for 3D input); blob_marker : (n_blobs,) int, the marker each blob of the take was
+    labeled as, -1 for blobs in no labeled point (None for 3D input).
     """
 
     X: np.ndarray
@@ -68,6 +71,8 @@ class LabeledTake:
     residual_px: np.ndarray
     interpolated: np.ndarray
     stats: dict = field(default_factory=dict)
+    views: np.ndarray | None = None
+    blob_marker: np.ndarray | None = None
 
 
 def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = LabelSettings()) -> np.ndarray:
@@ -160,8 +165,12 @@ def identify_markers(points: Points3D, n_frames: int, template: pd.DataFrame | N
 
 
 def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
-               settings: LabelSettings = LabelSettings(), fill_gaps_frames: int = 0) -> LabeledTake:
-    """Follow the markers through a take (see the module docstring)."""
+               settings: LabelSettings = LabelSettings(), fill_gaps_frames: int = 0,
+               n_blobs: int | None = None) -> LabeledTake:
+    """Follow the markers through a take (see the module docstring).
+
+    ``n_blobs`` (the take's blob count) enables ``blob_marker``, each blob's marker label.
+    """
     M = len(markers.names)
     X = np.full((n_frames, M, 3), np.nan)
     ncam = np.zeros((n_frames, M), np.int64)
@@ -207,7 +216,17 @@ def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
         "missing_marker_frames": int(np.isnan(X[..., 0]).sum()),
         "interpolated_marker_frames": int(interp.sum()),
     }
-    return LabeledTake(X, ncam, resid, interp, stats)
+    C = points.blob.shape[1]
+    views = np.zeros((C, M), np.int64)
+    pb = points.blob[sel]
+    for c in range(C):
+        views[c] = np.bincount(mk[pb[:, c] >= 0], minlength=M)
+    blob_marker = None
+    if n_blobs is not None:
+        blob_marker = np.full(n_blobs, -1, np.int64)
+        has = pb >= 0
+        blob_marker[pb[has]] = np.broadcast_to(mk[:, None], pb.shape)[has]
+    return LabeledTake(X, ncam, resid, interp, stats, views, blob_marker)
 
 
 def fill_gaps(X: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:

@@ -128,8 +128,10 @@ def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
         missing = {"time_s", "du", "command"} - set(rows.columns)
         if missing:
             raise ValueError(f"{path}: expected columns time_s,du,command; missing {sorted(missing)}")
-        takes.append(PlannedTake(f"commands_{i:02d}_{Path(path).stem}", "motion", rows,
-                                 plan=Path(path).stem,
+        stem = Path(path).stem
+        # a file named ..._planA.csv plays plan A (so 'mocap run' evaluates it against A)
+        label = stem[-1].upper() if stem[:-1].lower().endswith("_plan") else stem
+        takes.append(PlannedTake(f"commands_{i:02d}_{stem}", "motion", rows, plan=label,
                                  duration_s=float(rows.time_s.max()) + BATTERY_TAIL_S,
                                  purpose=f"commands from {Path(path).name}"))
     return takes

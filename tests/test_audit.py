@@ -1,0 +1,64 @@
+"""The capture-quality audit flags what the simulator degraded, and nothing else."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from conftest import make_session
+from mocap.pipeline import RunSettings, run_session
+
+
+def flagged(audit):
+    return {(f["kind"], f["item"]) for f in audit["flagged"]}
+
+
+def test_clean_session_flags_only_the_nose_bridge(small_run, small_truth):
+    a = json.loads((small_run.out_dir / "audit.json").read_text())
+    assert flagged(a) == {("marker", small_truth["nose_bridge_marker"])}
+    assert a["verdict"] == "warn"  # a bad marker is left out, it does not fail the capture
+    md = (small_run.out_dir / "audit.md").read_text()
+    assert small_truth["nose_bridge_marker"] in md and "## Cameras" in md
+    for name in ("audit_visibility.png", "audit_noise.png"):
+        assert (small_run.out_dir / "figures" / name).stat().st_size > 10_000
+
+
+@pytest.fixture(scope="module")
+def degraded(tmp_path_factory):
+    root = make_session(tmp_path_factory.mktemp("degraded"), seed=7, degrade_camera="cam3",
+                        battery=False, motion_plans=())
+    res = run_session(root / "session", root / "out", settings=RunSettings(analyze=False))
+    return root, res
+
+
+def test_degraded_camera_is_flagged_and_nothing_else(degraded):
+    root, res = degraded
+    truth = json.loads((root / "truth" / "truth.json").read_text())
+    a = json.loads((root / "out" / "audit.json").read_text())
+    assert flagged(a) == {("camera", "cam3"), ("marker", truth["nose_bridge_marker"])}
+    cam3 = next(c for c in a["cameras"] if c["camera"] == "cam3")
+    assert cam3["verdict"] == "fail" and cam3["dropout_rate"] > 0.2
+    assert a["verdict"] == "fail"
+    assert not (root / "out" / "properties.csv").exists()  # an audit-only run
+
+
+def test_audit_cli(degraded, capsys, tmp_path):
+    from mocap.cli import main
+
+    root, _ = degraded
+    assert main(["audit", str(root / "session"), "--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert "verdict: fail" in out and "cam3" in out
+
+
+def test_labeled_session_audit(tmp_path):
+    root = make_session(tmp_path / "lab", du_ids=(4,), n_trials=2, n_markers=20,
+                        motion_plans=(), battery=False, labeled=True, seed=4)
+    res = run_session(root / "session", tmp_path / "out")
+    a = json.loads((tmp_path / "out" / "audit.json").read_text())
+    assert "cameras" not in a and len(a["markers"]) == 20
+    truth = json.loads((root / "truth" / "truth.json").read_text())
+    nose = next(m for m in a["markers"] if m["marker"] == truth["nose_bridge_marker"])
+    assert nose["gaps"] > 0 and nose["verdict"] != "pass"
+    assert res.summary["audit"]["verdict"] in ("pass", "warn")
