@@ -48,7 +48,8 @@ def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
 
 
 def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
-                      *, n_boot: int = 200, noise_mm: np.ndarray | None = None) -> SessionAnalysis:
+                      *, n_boot: int = 200, noise_mm: np.ndarray | None = None,
+                      noise_cov_mm2: np.ndarray | None = None) -> SessionAnalysis:
     """Linearity, fitted responses and indices for every DU's averaged response.
 
     noise_mm : optional (M,) per-marker measurement noise sd (mm, per axis; the rest take's
@@ -56,6 +57,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         fits and indices use only markers whose peak displacement is at least ``MIN_SNR`` times
         that noise (below it a normalised curve is mostly noise: its "peak" is a noise maximum),
         and the dyssynchrony is corrected for the remaining noise (``analysis.properties``).
+    noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest; when given, the noise
+        along each marker's direction of motion (u' C u) replaces the per-axis average
+        (triangulation noise is larger in depth than across).
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
@@ -74,7 +78,10 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                 warnings.simplefilter("ignore", RuntimeWarning)  # markers that never reach 0.5
                 peak_mm = np.nanmedian(np.where(np.abs(delta) > 0.5, avg.along_mm / delta, np.nan),
                                        axis=0)
-                noise_var = (np.asarray(noise_mm) ** 2 / n_tr) / peak_mm**2
+                var_mm2 = np.asarray(noise_mm) ** 2
+                if noise_cov_mm2 is not None and avg.direction is not None:
+                    var_mm2 = np.einsum("mi,mij,mj->m", avg.direction, noise_cov_mm2, avg.direction)
+                noise_var = (var_mm2 / n_tr) / peak_mm**2
         fit_keep = keep
         if noise_mm is not None:
             se = np.asarray(noise_mm) / np.sqrt(n_tr)

@@ -23,7 +23,6 @@ from typing import Callable
 import numpy as np
 
 from calib.bundle import (
-    N_FRAME,
     WandProblem,
     _tangent_basis,
     camera_vector,
@@ -51,6 +50,8 @@ class CalibrationResult:
     residuals_px: np.ndarray  # (n_used, n_w, 2) final reprojection residuals
     ground: GroundFit | None = None
     timings_s: dict = field(default_factory=dict)
+    wand_frames: np.ndarray | None = None  # (n_ba_frames,) frames of the bundle adjustment
+    wand_points_mm: np.ndarray | None = None  # (n_ba_frames, n_w, 3) fitted wand, world frame
 
 
 def select_frames(obs: WandObservations, max_frames: int = 3600, per_camera: int = 120) -> np.ndarray:
@@ -147,20 +148,22 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         used[idx[bad]] = False
     timings["bundle_adjustment"] = time.perf_counter() - t1
     rig = rig_from_vectors(result.cameras, rig0)
+    wand_pts = problem.wand_points(result.frames)
     ground = None
     if ground_blobs is not None and ground_markers_mm is not None:
         t2 = time.perf_counter()
         ground = fit_ground(rig, ground_blobs, ground_markers_mm)
         rig = transform_rig(rig, ground.R, ground.t)
+        wand_pts = wand_pts @ ground.R.T + ground.t
         timings["world_frame"] = time.perf_counter() - t2
         say(f"world frame from the ground square: fit rms {ground.rms_mm:.3f} mm, "
             f"scale agreement {ground.scale:.5f}")
     quality = quality_report(rig, obs, used, result.residuals, wand_length, ground)
     timings["total"] = time.perf_counter() - t0
     quality["seconds"] = round(timings["total"], 3)
-    assert N_FRAME == 5
     return CalibrationResult(rig=rig, quality=quality, wand=obs, used=used,
-                             residuals_px=result.residuals, ground=ground, timings_s=timings)
+                             residuals_px=result.residuals, ground=ground, timings_s=timings,
+                             wand_frames=frames, wand_points_mm=wand_pts)
 
 
 def calibrate_session(session, *, max_frames: int = 3600,

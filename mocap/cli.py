@@ -17,6 +17,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "make a virtual capture session with known truth (and optional hidden effects)",
     "calibrate": "calibrate the camera rig from the wand and ground takes",
     "run": "process a session: calibration, reconstruction, analyses, figures, audit",
+    "replay": "open a run's Rerun recording (session.rrd) in the viewer",
     "audit": "capture-quality audit: calibration, cameras, markers, rejections",
     "design": "command files that realise a motion plan (A-E) from identified responses",
 }

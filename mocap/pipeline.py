@@ -60,6 +60,9 @@ class RunSettings:
     rejections: RejectionSettings = RejectionSettings()
     fill_gaps_frames: int = 0  # interpolate gaps up to this many frames (always flagged)
     analyze: bool = True  # the paper's analyses and figures (off for an audit-only run)
+    recording: bool = True  # write session.rrd (Rerun)
+    record_blobs: str = "subset"  # 2D blobs in the recording: "subset" (wand, rest, first
+    #                               response take), "all" face takes, or "none"
 
 
 @dataclass
@@ -72,6 +75,8 @@ class Reconstruction:
     noise_floor_mm: float | None
     noise_per_marker_mm: np.ndarray | None
     capture: dict = field(default_factory=dict)  # per camera / marker counts for the audit
+    blob_roles: dict = field(default_factory=dict)  # take -> (frame, camera, x, y, role) arrays;
+    #   role 0 labeled marker, 1 in an unlabeled point, 2 in no point (ghost)
 
 
 @dataclass
@@ -86,6 +91,7 @@ class RunResult:
     averages: list = field(default_factory=list)
     rejections: pd.DataFrame | None = None
     analysis: object | None = None  # analysis.session_analysis.SessionAnalysis
+    audit: dict | None = None
 
 
 def _take_frame_count(df: pd.DataFrame) -> int:
@@ -97,6 +103,7 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
     """Every take to labeled trajectories, written as trajectories/<take>.parquet."""
     keep_kinds = {"rest", "response"}
     dense: dict = {}
+    blob_roles: dict = {}
     stats: dict = {"takes": {}}
     face_takes = [t for t in session.takes if t.kind in ("rest", "response", "motion")]
     if session.dimension == "2d":
@@ -110,6 +117,8 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
         markers = identify_markers(pts, _take_frame_count(blobs), session.marker_template,
                                    settings.labels)
         say(f"{len(markers.names)} markers found on the rest take '{rest[0].name}'")
+        responses = session.takes_of_kind("response")
+        subset = {rest[0].name} | ({responses[0].name} if responses else set())
         M = len(markers.names)
         capture = {"camera_blobs": np.zeros(len(rig), np.int64),
                    "camera_labeled_blobs": np.zeros(len(rig), np.int64),
@@ -139,6 +148,13 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
             stats["takes"][take.name] = lab.stats
             if take.kind in keep_kinds:
                 dense[take.name] = lab
+            if settings.record_blobs == "all" or (
+                    settings.record_blobs == "subset" and take.name in subset):
+                role = np.full(len(blobs), 2, np.int8)  # in no 3D point: a ghost
+                role[pts.blob[pts.blob >= 0]] = 1  # in a point that got no marker
+                role[lab.blob_marker >= 0] = 0  # labeled
+                blob_roles[take.name] = (blobs["frame"].to_numpy(), cam_idx, blobs["x"].to_numpy(),
+                                         blobs["y"].to_numpy(), role)
             say(f"  {take.name}: {lab.stats['labeled_points']} labeled points, "
                 f"{lab.stats['missing_marker_frames']} marker-frames missing")
     else:
@@ -161,7 +177,8 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
     total = sum(s.get("labeled_points", s.get("points", 0)) for s in stats["takes"].values())
     stats["labeled_points"] = int(total)
     return Reconstruction(markers, dense, stats, noise_mean, noise,
-                          capture if session.dimension == "2d" else _capture_3d(dense, markers))
+                          capture if session.dimension == "2d" else _capture_3d(dense, markers),
+                          blob_roles)
 
 
 def _gap_counts(missing: np.ndarray) -> np.ndarray:
@@ -217,10 +234,16 @@ def run_analyses(session: Session, recon: Reconstruction, averages, rejections, 
     names = list(recon.markers.names)
     du_names = {d.id: d.name for d in session.dus}
     feedback = {d.id: d.feedback for d in session.dus}
-    noise = None
+    noise, noise_cov = None, None
     if recon.noise_per_marker_mm is not None:
         noise = np.sqrt(np.nanmean(recon.noise_per_marker_mm**2, axis=1))
-    res = analyze_responses(averages, names, rejections, du_names, noise_mm=noise)
+        rest = session.takes_of_kind("rest")
+        if rest and rest[0].name in recon.dense:
+            from analysis.linearity import position_covariance
+
+            noise_cov = position_covariance(recon.dense[rest[0].name].X)[0]
+    res = analyze_responses(averages, names, rejections, du_names, noise_mm=noise,
+                            noise_cov_mm2=noise_cov)
     write_csv(res.properties, out / "properties.csv")
     write_csv(res.linearity, out / "linearity.csv")
     write_csv(res.marker_properties, out / "marker_properties.csv")
@@ -345,6 +368,19 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     timings["audit_s"] = time.perf_counter() - t
     stages.append("audit")
 
+    # --- Rerun recording -> session.rrd ---------------------------------------------------
+    if settings.recording:
+        from mocap.recording import write_recording
+
+        t = time.perf_counter()
+        partial.analysis = analysis_result
+        partial.audit = audit
+        write_recording(out / "session.rrd", partial)
+        timings["recording_s"] = time.perf_counter() - t
+        stages.append("recording")
+        say(f"Rerun recording written: {out / 'session.rrd'} "
+            f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
+
     summary = {
         "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
                     "dimension": session.dimension, "fps": session.fps,
@@ -377,4 +413,4 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     write_text(out / "summary.json", json.dumps(summary, indent=2))
     return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration,
                      reconstruction=recon, averages=averages, rejections=rejections,
-                     analysis=analysis_result)
+                     analysis=analysis_result, audit=audit)

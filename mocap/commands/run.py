@@ -10,14 +10,22 @@ DESCRIPTION = """\
 Process a capture session (FORMAT.md) and write the results (OUTPUTS.md) into OUT_DIR.
 The raw session is never modified; every output file is written atomically.
 
-example:
+examples:
   mocap run sample_data/session --out out/sample
+  mocap run sample_data/session --out out/fast --no-rrd --min-cameras 2
 """
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("session_dir", type=Path, help="session folder holding session.toml")
     p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording (session.rrd)")
+    p.add_argument("--all-blobs", action="store_true",
+                   help="record the 2D blobs of every take (default: wand, rest, first response)")
+    p.add_argument("--min-cameras", type=int, default=3,
+                   help="cameras a 3D point needs (default 3, as the paper; 2 is the minimum)")
+    p.add_argument("--fill-gaps", type=int, default=0, metavar="FRAMES",
+                   help="interpolate gaps up to FRAMES frames (flagged in the trajectories)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,8 +36,14 @@ def run(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
+    from mocap.pipeline import RunSettings
+    from mocap.reconstruct.correspondence import ReconstructionSettings
+
+    settings = RunSettings(reconstruction=ReconstructionSettings(min_cameras=args.min_cameras),
+                           fill_gaps_frames=args.fill_gaps, recording=not args.no_rrd,
+                           record_blobs="all" if args.all_blobs else "subset")
     try:
-        result = run_session(args.session_dir, args.out, progress=say)
+        result = run_session(args.session_dir, args.out, progress=say, settings=settings)
     except (SessionError, CalibrationError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from analysis.displacement import normalized, normalized_along, peak_length
+from analysis.displacement import normalized, normalized_along, peak_length, principal_direction
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
 
@@ -73,6 +73,7 @@ class TrialAverage:
     warnings: tuple[str, ...] = ()
     delta_along: np.ndarray | None = None  # (n_frames, M) along the principal direction
     along_mm: np.ndarray | None = None  # (n_frames, M) displacement along it, mm
+    direction: np.ndarray | None = None  # (M, 3) each marker's unit principal direction
 
 
 def _first_change(command: np.ndarray) -> int:
@@ -121,9 +122,10 @@ def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.nd
             rest = np.nanmean(mean[:lead], axis=0)
     window = max(1, int(round(NORMALISE_S * fps)))
     disp, delta = normalized(mean - rest[None], window)
-    along, delta_along = normalized_along(mean - rest[None], window)
+    direction = principal_direction(mean - rest[None])
+    along, delta_along = normalized_along(mean - rest[None], window, direction)
     return TrialAverage(du, fps, command, mean, spread, n_tr, rest, disp, delta, T,
-                        tuple(takes), tuple(warnings), delta_along, along)
+                        tuple(takes), tuple(warnings), delta_along, along, direction)
 
 
 def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:

@@ -1,0 +1,256 @@
+"""The Rerun recording of a run: the only module that imports ``rerun``.
+
+``write_recording(path, result)`` turns a :class:`mocap.pipeline.RunResult` into a ``.rrd`` file
+(written to a temporary name, then renamed). It uses an explicit ``RecordingStream`` and Rerun's
+columnar ``send_columns`` for every series (no Python loop per frame). What it holds, on the
+capture's own timelines ``frame`` (sequence) and ``time`` (seconds; each take starts at 0):
+
+- ``world``: y-up view coordinates; an annotation context naming every marker (class id = marker
+  index), so 3D points carry names without a string per point;
+- ``world/cameras/<id>``: the camera's pose (world from camera) and, under ``image``, its pinhole
+  (K, image size, OpenCV axes); ``image/blobs/<take>``: 2D blobs coloured by role (green: labeled
+  marker, orange: in a 3D point left unlabeled, red: in no point, a ghost) for the wand take and a
+  subset of takes (all on request); ``image/wand``: the wand sightings the calibration used
+  (green) and rejected (red);
+- ``world/calibration/wand``: the fitted wand per frame; ``plots/calibration/residual_px``: each
+  camera's worst marker residual per wand frame;
+- ``world/rest``: the markers at rest; ``world/rejected``: rejected markers, labeled with why;
+- ``world/takes/<take>/markers``: labeled 3D markers over time; ``.../paths``: each marker's
+  trajectory as a line strip;
+- ``plots/commands/<take>``: the DUs' commands as scalar series;
+- ``plots/du<NN>/response``: measured mean normalised displacement and the fitted forward and
+  backward sigmoids (along the ramps' command lines);
+- ``charts/property_chart``: sensitivity (x 1000) against hysteresis, coloured by dyssynchrony;
+- ``annotations/rejections`` and ``annotations/audit``: markdown tables;
+- a default blueprint: the 3D view, a camera view, the plots and the property chart.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from mocap.atomic import atomic_path
+
+GREEN, ORANGE, RED, GREY = (60, 200, 90), (240, 160, 40), (230, 60, 60), (150, 150, 150)
+ROLE_COLOURS = np.array([GREEN, ORANGE, RED], np.uint8)
+
+
+def _times(rr, frames: np.ndarray, fps: float):
+    return [rr.TimeColumn("frame", sequence=frames.astype(np.int64)),
+            rr.TimeColumn("time", duration=frames / fps)]
+
+
+def _points_over_time(rec, rr, path, frame, fps, positions, **columns):
+    """Send points grouped by frame (rows sorted by frame) as one column batch."""
+    if frame.size == 0:
+        return
+    order = np.argsort(frame, kind="stable")
+    frame = frame[order]
+    uniq, counts = np.unique(frame, return_counts=True)
+    kind = rr.Points3D if positions.shape[1] == 3 else rr.Points2D
+    cols = kind.columns(positions=positions[order], **{k: v[order] for k, v in columns.items()})
+    rec.send_columns(path, indexes=_times(rr, uniq, fps), columns=cols.partition(lengths=counts))
+
+
+def _series(rec, rr, path, names, values, fps):
+    """values (n_frames, n_series): one scalar series per column, NaN where absent."""
+    rec.log(path, rr.SeriesLines(names=list(names)), static=True)
+    n, k = values.shape
+    rec.send_columns(path, indexes=_times(rr, np.arange(n), fps),
+                     columns=rr.Scalars.columns(scalars=values.ravel()).partition(lengths=[k] * n))
+
+
+def blueprint(camera_ids):
+    import rerun.blueprint as rrb
+
+    cam_views = [rrb.Spatial2DView(origin=f"world/cameras/{c}/image", name=c) for c in camera_ids]
+    right = [rrb.TimeSeriesView(origin="plots", name="plots"),
+             rrb.Spatial2DView(origin="charts", name="property chart")]
+    if cam_views:
+        right.insert(0, rrb.Tabs(*cam_views))
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="face and rig"),
+                                        rrb.Vertical(*right), column_shares=[3, 2]),
+                         collapse_panels=True)
+
+
+def write_recording(path: str | os.PathLike, result) -> Path:
+    """Write the run's Rerun recording to ``path`` (atomically); return the path."""
+    import rerun as rr
+
+    session = result.session
+    fps = float(session.fps)
+    recon = result.reconstruction
+    names = list(recon.markers.names)
+    calib = result.calibration
+    cam_ids = list(calib.rig.ids) if calib is not None else []
+    with atomic_path(path) as tmp:
+        rec = rr.RecordingStream("facemocap", recording_id=f"facemocap-{session.name}")
+        rec.save(str(tmp), default_blueprint=blueprint(cam_ids))
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+        rec.log("world", rr.AnnotationContext([(i, n) for i, n in enumerate(names)]), static=True)
+        _log_rig_and_calibration(rec, rr, result, fps)
+        rest = recon.markers.rest_mm
+        ok = np.all(np.isfinite(rest), axis=1)
+        rec.log("world/rest", rr.Points3D(rest[ok], class_ids=np.flatnonzero(ok), radii=0.6),
+                static=True)
+        _log_takes(rec, rr, result, fps, names)
+        _log_responses(rec, rr, result, fps)
+        _log_annotations(rec, rr, result, names)
+        rec.flush()
+        rec.disconnect()
+    return Path(path)
+
+
+def _log_rig_and_calibration(rec, rr, result, fps):
+    calib = result.calibration
+    if calib is None:
+        return
+    for cam in calib.rig:
+        rec.log(f"world/cameras/{cam.id}", rr.Transform3D(translation=cam.center, mat3x3=cam.R.T),
+                static=True)
+        rec.log(f"world/cameras/{cam.id}/image",
+                rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height],
+                           camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=60.0),
+                static=True)
+    obs = calib.wand
+    for ci, cid in enumerate(calib.rig.ids):
+        sel = obs.camera == ci
+        if not sel.any():
+            continue
+        n_w = obs.uv.shape[1]
+        used = np.repeat(calib.used[sel], n_w)
+        colours = np.where(used[:, None], np.array(GREEN, np.uint8), np.array(RED, np.uint8))
+        _points_over_time(rec, rr, f"world/cameras/{cid}/image/wand", np.repeat(obs.frame[sel], n_w),
+                          fps, obs.uv[sel].reshape(-1, 2), colors=colours)
+    if calib.wand_points_mm is not None:
+        F, n_w, _ = calib.wand_points_mm.shape
+        _points_over_time(rec, rr, "world/calibration/wand", np.repeat(calib.wand_frames, n_w), fps,
+                          calib.wand_points_mm.reshape(-1, 3),
+                          colors=np.tile(np.array([[255, 220, 0]], np.uint8), (F * n_w, 1)))
+        # worst marker residual per sighting, one series per camera (NaN where not seen)
+        used_obs = calib.wand.select(calib.used)
+        worst = np.linalg.norm(calib.residuals_px, axis=-1).max(axis=1)
+        local = np.searchsorted(calib.wand_frames, used_obs.frame)
+        table = np.full((F, len(calib.rig)), np.nan)
+        table[local, used_obs.camera] = worst
+        rec.log("plots/calibration/residual_px", rr.SeriesLines(names=list(calib.rig.ids)), static=True)
+        rec.send_columns("plots/calibration/residual_px", indexes=_times(rr, calib.wand_frames, fps),
+                         columns=rr.Scalars.columns(scalars=table.ravel()).partition(
+                             lengths=[len(calib.rig)] * F))
+    # raw blobs of the takes kept for the recording, coloured by role
+    recon = result.reconstruction
+    for take, (frame, cam, x, y, role) in recon.blob_roles.items():
+        for ci, cid in enumerate(calib.rig.ids):
+            sel = cam == ci
+            _points_over_time(rec, rr, f"world/cameras/{cid}/image/blobs/{take}", frame[sel], fps,
+                              np.column_stack([x[sel], y[sel]]), colors=ROLE_COLOURS[role[sel]])
+
+
+def _log_takes(rec, rr, result, fps, names):
+    import pandas as pd
+
+    session = result.session
+    out = result.out_dir
+    M = len(names)
+    for take in session.takes:
+        if take.kind not in ("rest", "response", "motion"):
+            continue
+        path = out / "trajectories" / f"{take.name}.parquet"
+        if not path.is_file():
+            continue
+        df = pd.read_parquet(path, columns=["frame", "x", "y", "z"])
+        n_frames = int(df["frame"].max()) + 1
+        X = df[["x", "y", "z"]].to_numpy().reshape(n_frames, M, 3)
+        ok = np.isfinite(X[..., 0])
+        f_idx, m_idx = np.nonzero(ok)
+        _points_over_time(rec, rr, f"world/takes/{take.name}/markers", f_idx, fps, X[ok],
+                          class_ids=m_idx.astype(np.uint16))
+        strips = [X[ok[:, m], m] for m in range(M) if ok[:, m].sum() >= 2]
+        rec.log(f"world/takes/{take.name}/paths",
+                rr.LineStrips3D(strips, radii=0.08, class_ids=[m for m in range(M) if ok[:, m].sum() >= 2]),
+                static=True)
+        if take.commands is not None:
+            from mocap.session import command_matrix
+
+            dus = list(session.du_ids)
+            cmd = command_matrix(session.read_commands(take.name), fps, n_frames, dus)
+            active = np.flatnonzero(cmd.any(axis=0))
+            if active.size:
+                _series(rec, rr, f"plots/commands/{take.name}", [f"DU {dus[i]}" for i in active],
+                        cmd[:, active].astype(float), fps)
+
+
+def _log_responses(rec, rr, result, fps):
+    from analysis.response import sigmoid
+
+    res = result.analysis
+    if res is None:
+        return
+    for avg in result.averages:
+        p = res.du.get(avg.du)
+        if p is None:
+            continue
+        keep = res.fitted[avg.du]
+        delta = avg.delta_along if avg.delta_along is not None else avg.delta
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(delta[:, keep], axis=1) if keep.any() else np.full(delta.shape[0], np.nan)
+            sd = np.nanstd(delta[:, keep], axis=1) if keep.any() else mean
+        n = delta.shape[0]
+        t = np.arange(n) / fps
+        cols = np.full((n, 5), np.nan)
+        cols[:, 0] = mean
+        cols[:, 1] = mean + sd
+        cols[:, 2] = mean - sd
+        for j, (ramp, par) in enumerate(((p.ramps[0], p.fwd), (p.ramps[1], p.bwd))):
+            sl = slice(ramp.start, ramp.stop)
+            cols[sl, 3 + j] = sigmoid(ramp.p0 + ramp.p1 * t[sl], par.alpha, par.beta)
+        _series(rec, rr, f"plots/du{avg.du:02d}/response",
+                ["measured mean", "mean + sd", "mean - sd", "fit forward", "fit backward"], cols, fps)
+
+
+def _log_annotations(rec, rr, result, names):
+    res = result.analysis
+    if res is not None and len(res.properties):
+        props = res.properties
+        gamma = props["dyssynchrony"].to_numpy(float)
+        g = (gamma - np.nanmin(gamma)) / max(np.nanmax(gamma) - np.nanmin(gamma), 1e-12)
+        colours = np.column_stack([255 * g, 80 + 0 * g, 255 * (1 - g)]).astype(np.uint8)
+        rec.log("charts/property_chart",
+                rr.Points2D(np.column_stack([1000 * props["sensitivity"], props["hysteresis"]]),
+                            labels=[f"DU {d}" for d in props["du"]], colors=colours, radii=1.5),
+                static=True)
+        rec.log("charts/about", rr.TextDocument(
+            "Property chart: x = sensitivity alpha x 1000 (1/command unit), y = hysteresis "
+            "(command units), colour = dyssynchrony (blue low, red high).",
+            media_type=rr.MediaType.MARKDOWN), static=True)
+    rej = result.rejections
+    if rej is not None and len(rej):
+        lines = ["| DU | marker | reason | value | threshold |", "|---|---|---|---|---|"]
+        import pandas as pd
+
+        lines += [f"| {'all' if pd.isna(r.du) else int(r.du)} | {r.marker} | "
+                  f"{r.reason} | {r.value:.4g} | {r.threshold:.4g} |" for r in rej.itertuples()]
+        rec.log("annotations/rejections", rr.TextDocument("\n".join(lines),
+                                                          media_type=rr.MediaType.MARKDOWN), static=True)
+        rest = result.reconstruction.markers.rest_mm
+        why: dict = {}
+        for r in rej.itertuples():
+            why.setdefault(r.marker, []).append(r.reason)
+        idx = [names.index(m) for m in why if m in names]
+        pts = rest[idx]
+        ok = np.all(np.isfinite(pts), axis=1)
+        rec.log("world/rejected", rr.Points3D(pts[ok], radii=1.2, colors=RED,
+                                              labels=[f"{names[i]}: {', '.join(sorted(set(why[names[i]])))}"
+                                                      for i, k in zip(idx, ok) if k]), static=True)
+    audit = getattr(result, "audit", None)
+    if audit:
+        lines = [f"Audit verdict: **{audit['verdict']}**", ""]
+        lines += [f"- {f['verdict']}: {f['kind']} {f['item']} ({f['why']})" for f in audit["flagged"]]
+        rec.log("annotations/audit", rr.TextDocument("\n".join(lines),
+                                                     media_type=rr.MediaType.MARKDOWN), static=True)

@@ -1,0 +1,77 @@
+"""The Rerun recording, read back with the Rerun SDK's own reader."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections import Counter
+
+import numpy as np
+import pandas as pd
+import pytest
+
+
+@pytest.fixture(scope="module")
+def chunks(small_run):
+    from rerun.chunk import RrdReader
+
+    path = small_run.out_dir / "session.rrd"
+    assert path.is_file()
+    reader = RrdReader(path)
+    rows, timelines = Counter(), {}
+    for ch in reader.stream():
+        rows[ch.entity_path] += ch.num_rows
+        timelines.setdefault(ch.entity_path, set()).update(ch.timeline_names)
+    return reader, rows, timelines
+
+
+def test_recording_holds_rig_markers_and_plots(small_run, chunks):
+    reader, rows, timelines = chunks
+    session = small_run.session
+    cams = list(small_run.calibration.rig.ids)
+    for c in cams:
+        assert rows[f"/world/cameras/{c}"] >= 1 and rows[f"/world/cameras/{c}/image"] >= 1
+        assert rows[f"/world/cameras/{c}/image/wand"] > 100
+        assert rows[f"/world/cameras/{c}/image/blobs/rest"] > 0
+    assert rows["/world/calibration/wand"] == len(small_run.calibration.wand_frames)
+    for take in session.takes:
+        if take.kind not in ("rest", "response", "motion"):
+            continue
+        df = pd.read_parquet(small_run.out_dir / "trajectories" / f"{take.name}.parquet")
+        frames_with_points = df.loc[df["x"].notna(), "frame"].nunique()
+        assert rows[f"/world/takes/{take.name}/markers"] == frames_with_points, take.name
+        assert {"frame", "time"} <= timelines[f"/world/takes/{take.name}/markers"]
+        assert rows[f"/world/takes/{take.name}/paths"] == 1
+        if take.commands is not None:
+            n_frames = df["frame"].max() + 1
+            assert rows[f"/plots/commands/{take.name}"] == n_frames + 1  # + the static styling
+    for du in (1, 4, 7, 12):
+        assert rows[f"/plots/du{du:02d}/response"] > 600
+    for path in ("/charts/property_chart", "/annotations/rejections", "/world/rejected",
+                 "/world/rest", "/annotations/audit"):
+        assert rows[path] >= 1, path
+    assert len(list(reader.blueprints())) >= 1
+
+
+def test_recording_blob_colours_reflect_roles(small_run):
+    frame, cam, x, y, role = small_run.reconstruction.blob_roles["rest"]
+    labels = pd.read_parquet(small_run.session.root.parent / "truth" / "labels" / "rest.parquet")["label"].to_numpy()
+    # blobs labeled as markers are real markers; ghosts rarely are
+    assert np.mean(labels[role == 0] >= 0) > 0.999
+    assert np.mean(role[labels == -1] != 0) > 0.95
+
+
+def test_core_packages_do_not_import_rerun():
+    code = ("import sys, mocap.pipeline, mocap.audit, calib.wand_calibration, analysis.session_analysis;"
+            "sys.exit(1 if 'rerun' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_replay_without_display(small_run, capsys, monkeypatch):
+    from mocap.cli import main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert main(["replay", str(small_run.out_dir)]) == 0
+    assert "rerun session.rrd" in capsys.readouterr().out
+    assert main(["replay", str(small_run.out_dir / "nothing")]) == 1
