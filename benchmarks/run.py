@@ -146,6 +146,11 @@ def stage_run() -> dict:
             "feedback_alpha_max": round(float(feedback["sensitivity"].max()), 4),
             "open_loop_alpha_min": round(float(others["sensitivity"].min()), 4),
             "calibration": res.summary.get("calibration"),
+            "rrd_mb": round((out / "session.rrd").stat().st_size / 1e6, 1)
+            if (out / "session.rrd").exists() else None,
+            "labeled_points": res.summary["reconstruction"]["labeled_points"],
+            "reconstruct_points_per_s": round(res.summary["reconstruction"]["labeled_points"]
+                                              / res.summary["timings_s"]["reconstruct_s"]),
             "noise_floor_mm": res.summary.get("noise_floor_mm"),
             "rejections": res.summary.get("rejections")}
 

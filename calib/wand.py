@@ -106,12 +106,12 @@ def find_wand(blobs: pd.DataFrame, camera_ids, offsets_mm, *, line_tol_px: float
     offsets = np.sort(np.asarray(offsets_mm, float))
     n_w = offsets.size
     gaps = np.diff(offsets)
-    cam_index = {c: i for i, c in enumerate(camera_ids)}
-    cam = blobs["camera"].map(cam_index).to_numpy()
-    if np.any(pd.isna(cam)):
-        unknown = sorted(set(blobs["camera"][pd.isna(cam)]))
+    from calib.camera import camera_index
+
+    cam = camera_index(blobs["camera"], camera_ids)
+    if np.any(cam < 0):
+        unknown = sorted(set(blobs["camera"][cam < 0]))
         raise ValueError(f"wand blobs: cameras {unknown} are not in the rig {list(camera_ids)}")
-    cam = cam.astype(np.int64)
     frame = blobs["frame"].to_numpy(np.int64)
     xy = blobs[["x", "y"]].to_numpy(float)
     n_frames = int(frame.max()) + 1 if frame.size else 0

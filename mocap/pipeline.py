@@ -11,6 +11,7 @@ rejections -> analyses and figures -> audit -> Rerun recording.
 from __future__ import annotations
 
 import json
+import os
 import platform
 import time
 from dataclasses import dataclass, field
@@ -60,6 +61,7 @@ class RunSettings:
     rejections: RejectionSettings = RejectionSettings()
     fill_gaps_frames: int = 0  # interpolate gaps up to this many frames (always flagged)
     analyze: bool = True  # the paper's analyses and figures (off for an audit-only run)
+    jobs: int = field(default_factory=lambda: os.cpu_count() or 1)  # processes over takes
     recording: bool = True  # write session.rrd (Rerun)
     record_blobs: str = "subset"  # 2D blobs in the recording: "subset" (wand, rest, first
     #                               response take), "all" face takes, or "none"
@@ -125,38 +127,23 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
                    "views": np.zeros((len(rig), M), np.int64),
                    "marker_frames": np.zeros(M, np.int64), "frames": 0,
                    "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
-        for take in face_takes:
-            blobs = session.read_take(take.name)
-            n_frames = _take_frame_count(blobs)
-            pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
-            lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames,
-                             n_blobs=len(blobs))
-            lab.stats["blobs"] = int(len(blobs))
-            lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
-            cam_idx = blobs["camera"].map({c: i for i, c in enumerate(rig.ids)}).to_numpy()
-            capture["camera_blobs"] += np.bincount(cam_idx, minlength=len(rig))
-            capture["camera_labeled_blobs"] += np.bincount(cam_idx[lab.blob_marker >= 0],
-                                                           minlength=len(rig))
-            capture["views"] += lab.views
-            capture["marker_frames"] += np.isfinite(lab.X[..., 0]).sum(axis=0)
-            capture["frames"] += n_frames
-            missing = np.isnan(lab.X[..., 0])
-            capture["gaps"] += _gap_counts(missing)
-            capture["longest_gap"] = np.maximum(capture["longest_gap"], _longest_gaps(missing))
-            write_parquet(trajectories_frame(lab, markers.names),
-                          out / "trajectories" / f"{take.name}.parquet")
-            stats["takes"][take.name] = lab.stats
-            if take.kind in keep_kinds:
-                dense[take.name] = lab
-            if settings.record_blobs == "all" or (
-                    settings.record_blobs == "subset" and take.name in subset):
-                role = np.full(len(blobs), 2, np.int8)  # in no 3D point: a ghost
-                role[pts.blob[pts.blob >= 0]] = 1  # in a point that got no marker
-                role[lab.blob_marker >= 0] = 0  # labeled
-                blob_roles[take.name] = (blobs["frame"].to_numpy(), cam_idx, blobs["x"].to_numpy(),
-                                         blobs["y"].to_numpy(), role)
-            say(f"  {take.name}: {lab.stats['labeled_points']} labeled points, "
-                f"{lab.stats['missing_marker_frames']} marker-frames missing")
+        tasks = [(take.name, take.kind in keep_kinds,
+                  settings.record_blobs == "all"
+                  or (settings.record_blobs == "subset" and take.name in subset))
+                 for take in face_takes]
+        for name, res in _map_takes(session, out, rig, quality, markers, settings, tasks):
+            lab, acc = res["labeled"], res["capture"]
+            for k in ("camera_blobs", "camera_labeled_blobs", "views", "marker_frames", "gaps"):
+                capture[k] += acc[k]
+            capture["frames"] += acc["frames"]
+            capture["longest_gap"] = np.maximum(capture["longest_gap"], acc["longest_gap"])
+            stats["takes"][name] = res["stats"]
+            if lab is not None:
+                dense[name] = lab
+            if res["roles"] is not None:
+                blob_roles[name] = res["roles"]
+            say(f"  {name}: {res['stats']['labeled_points']} labeled points, "
+                f"{res['stats']['missing_marker_frames']} marker-frames missing")
     else:
         frames = {t.name: session.read_take(t.name) for t in face_takes}
         names = marker_names_3d(list(frames.values()), session.marker_template)
@@ -179,6 +166,68 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
     return Reconstruction(markers, dense, stats, noise_mean, noise,
                           capture if session.dimension == "2d" else _capture_3d(dense, markers),
                           blob_roles)
+
+
+def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerSet,
+                     settings: "RunSettings", name: str, keep: bool, record: bool) -> dict:
+    """One raw take to labeled trajectories (written as trajectories/<take>.parquet).
+
+    Returns the take's statistics, its per-camera/marker capture counts, the LabeledTake when
+    ``keep`` and the blobs' roles when ``record``. Independent of every other take once the rig
+    is calibrated and the markers are known, so takes run in parallel (``RunSettings.jobs``).
+    """
+    from calib.camera import camera_index
+
+    blobs = session.read_take(name)
+    n_frames = _take_frame_count(blobs)
+    pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
+    lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames,
+                     n_blobs=len(blobs))
+    lab.stats["blobs"] = int(len(blobs))
+    lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
+    cam_idx = camera_index(blobs["camera"], rig.ids)
+    missing = np.isnan(lab.X[..., 0])
+    capture = {
+        "camera_blobs": np.bincount(cam_idx, minlength=len(rig)),
+        "camera_labeled_blobs": np.bincount(cam_idx[lab.blob_marker >= 0], minlength=len(rig)),
+        "views": lab.views, "marker_frames": (~missing).sum(axis=0), "frames": n_frames,
+        "gaps": _gap_counts(missing), "longest_gap": _longest_gaps(missing),
+    }
+    write_parquet(trajectories_frame(lab, markers.names), out / "trajectories" / f"{name}.parquet")
+    roles = None
+    if record:
+        role = np.full(len(blobs), 2, np.int8)  # in no 3D point: a ghost
+        role[pts.blob[pts.blob >= 0]] = 1  # in a point that got no marker
+        role[lab.blob_marker >= 0] = 0  # labeled
+        roles = (blobs["frame"].to_numpy(), cam_idx, blobs["x"].to_numpy(), blobs["y"].to_numpy(), role)
+    return {"stats": lab.stats, "capture": capture, "labeled": lab if keep else None, "roles": roles}
+
+
+def _worker_init() -> None:
+    try:  # one process per core: no nested numba threads
+        import numba
+
+        numba.set_num_threads(1)
+    except Exception:  # pragma: no cover - numba is a dependency
+        pass
+
+
+def _map_takes(session, out, rig, quality, markers, settings, tasks):
+    """Yield (take name, result) for every task, in parallel over ``settings.jobs`` processes."""
+    jobs = max(1, min(int(settings.jobs), len(tasks)))
+    if jobs == 1:
+        for name, keep, record in tasks:
+            yield name, reconstruct_take(session, out, rig, quality, markers, settings, name, keep, record)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                             initializer=_worker_init) as pool:
+        futures = [pool.submit(reconstruct_take, session, out, rig, quality, markers, settings,
+                               name, keep, record) for name, keep, record in tasks]
+        for (name, _, _), fut in zip(tasks, futures):
+            yield name, fut.result()
 
 
 def _gap_counts(missing: np.ndarray) -> np.ndarray:

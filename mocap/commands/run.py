@@ -19,6 +19,8 @@ examples:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("session_dir", type=Path, help="session folder holding session.toml")
     p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="processes reconstructing takes in parallel (default: all cores)")
     p.add_argument("--no-rrd", action="store_true", help="skip the Rerun recording (session.rrd)")
     p.add_argument("--all-blobs", action="store_true",
                    help="record the 2D blobs of every take (default: wand, rest, first response)")
@@ -42,6 +44,10 @@ def run(args: argparse.Namespace) -> int:
     settings = RunSettings(reconstruction=ReconstructionSettings(min_cameras=args.min_cameras),
                            fill_gaps_frames=args.fill_gaps, recording=not args.no_rrd,
                            record_blobs="all" if args.all_blobs else "subset")
+    if args.jobs is not None:
+        import dataclasses
+
+        settings = dataclasses.replace(settings, jobs=max(1, args.jobs))
     try:
         result = run_session(args.session_dir, args.out, progress=say, settings=settings)
     except (SessionError, CalibrationError) as e:

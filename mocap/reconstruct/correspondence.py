@@ -76,12 +76,12 @@ class BlobTable:
 
     @classmethod
     def from_frame(cls, blobs: pd.DataFrame, rig: CameraRig) -> "BlobTable":
-        index = {c: i for i, c in enumerate(rig.ids)}
-        cam = blobs["camera"].map(index)
-        if cam.isna().any():
-            bad = sorted(set(blobs["camera"][cam.isna()]))
+        from calib.camera import camera_index
+
+        cam = camera_index(blobs["camera"], rig.ids)
+        if np.any(cam < 0):
+            bad = sorted(set(blobs["camera"][cam < 0]))
             raise ValueError(f"blobs from cameras {bad} that the calibration does not have {rig.ids}")
-        cam = cam.to_numpy(np.int64)
         uv = blobs[["x", "y"]].to_numpy(np.float64)
         xn = np.empty_like(uv)
         ray = np.empty((uv.shape[0], 3))
