@@ -17,6 +17,8 @@ COMMANDS: dict[str, str] = {
     "simulate": "make a virtual capture session with known truth (and optional hidden effects)",
     "calibrate": "calibrate the camera rig from the wand and ground takes",
     "run": "process a session: calibration, reconstruction, analyses, figures, audit",
+    "import": "vendors' exports (C3D, Motive CSV, QTM TSV, Vicon CSV) to a labeled session",
+    "export": "labeled trajectories to C3D (markers, rate, mm, commands as analog channels)",
     "replay": "open a run's Rerun recording (session.rrd) in the viewer",
     "audit": "capture-quality audit: calibration, cameras, markers, rejections",
     "design": "command files that realise a motion plan (A-E) from identified responses",
@@ -24,7 +26,8 @@ COMMANDS: dict[str, str] = {
 
 
 def _module(name: str):
-    return importlib.import_module(f"mocap.commands.{name}")
+    # "import" is a Python keyword: its module is mocap.commands.import_
+    return importlib.import_module(f"mocap.commands.{name}_" if name == "import" else f"mocap.commands.{name}")
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:

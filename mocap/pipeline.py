@@ -151,8 +151,16 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
         rest_pos = (np.nanmedian(dense_from_3d(frames[rest_take[0].name], names).X, axis=0)
                     if rest_take else np.full((len(names), 3), np.nan))
         markers = MarkerSet(tuple(names), rest_pos)
+        M = len(names)
+        capture = {"marker_frames": np.zeros(M, np.int64), "frames": 0,
+                   "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
         for take in face_takes:
             lab = dense_from_3d(frames[take.name], names)
+            missing = np.isnan(lab.X[..., 0])
+            capture["marker_frames"] += (~missing).sum(axis=0)
+            capture["frames"] += missing.shape[0]
+            capture["gaps"] += _gap_counts(missing)
+            capture["longest_gap"] = np.maximum(capture["longest_gap"], _longest_gaps(missing))
             write_parquet(trajectories_frame(lab, names), out / "trajectories" / f"{take.name}.parquet")
             stats["takes"][take.name] = lab.stats
             if take.kind in keep_kinds:
@@ -163,9 +171,7 @@ def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSett
         noise, noise_mean = noise_floor(dense[rest[0].name].X)
     total = sum(s.get("labeled_points", s.get("points", 0)) for s in stats["takes"].values())
     stats["labeled_points"] = int(total)
-    return Reconstruction(markers, dense, stats, noise_mean, noise,
-                          capture if session.dimension == "2d" else _capture_3d(dense, markers),
-                          blob_roles)
+    return Reconstruction(markers, dense, stats, noise_mean, noise, capture, blob_roles)
 
 
 def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerSet,
@@ -243,20 +249,6 @@ def _longest_gaps(missing: np.ndarray) -> np.ndarray:
     idx = np.where(~missing, np.arange(n)[:, None], -1)
     run_len = np.arange(n)[:, None] - np.maximum.accumulate(idx, axis=0)
     return np.where(missing, run_len, 0).max(axis=0)
-
-
-def _capture_3d(dense: dict, markers: MarkerSet) -> dict:
-    """Gap statistics of labeled 3D input (no cameras)."""
-    M = len(markers.names)
-    out = {"marker_frames": np.zeros(M, np.int64), "frames": 0,
-           "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
-    for lab in dense.values():
-        missing = np.isnan(lab.X[..., 0])
-        out["marker_frames"] += (~missing).sum(axis=0)
-        out["frames"] += missing.shape[0]
-        out["gaps"] += _gap_counts(missing)
-        out["longest_gap"] = np.maximum(out["longest_gap"], _longest_gaps(missing))
-    return out
 
 
 def average_responses(session: Session, recon: Reconstruction) -> list[TrialAverage]:

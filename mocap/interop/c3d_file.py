@@ -1,0 +1,121 @@
+"""C3D read and write with ezc3d.
+
+Why ezc3d: a maintained C++ core with manylinux wheels (MIT), a plain dict-like API, and
+residual handling the field relies on (a residual < 0 marks a gap: Vicon Nexus, Visual3D and
+Mokka read it so). The pure-Python ``c3d`` package reads the same files identically and serves
+as the cross-check in the tests.
+
+Reading: POINT:LABELS (and LABELS2...), POINT:UNITS converted to mm, residual < 0 or NaN
+coordinates are gaps, POINT entries that are model outputs (listed in POINT:ANGLES, FORCES,
+MOMENTS, POWERS, SCALARS, REACTIONS) are left out with a note, duplicate labels renamed with a
+note; ANALOG channels kept with their rate and unit.
+
+Writing: points in mm with residual -1 at gaps (ezc3d writes NaN with residual 0 otherwise) and
+0 elsewhere; commands as ANALOG channels at the point rate (``DU04``, unit ``command``), scale 1
+and offset 0 (the c3d package's writer leaves them empty, which crashes ezc3d). ezc3d 1.7.2
+writes files of more than 65,535 frames wrongly, so longer takes are refused with a clear error.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from mocap.atomic import atomic_path
+from mocap.interop.marker_data import ImportError_, MarkerData, unique_names, unit_scale
+
+MODEL_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
+MAX_FRAMES = 65535
+
+
+def _labels(group: dict, base: str = "LABELS") -> list[str]:
+    out = list(group.get(base, {}).get("value", []))
+    k = 2
+    while f"{base}{k}" in group:
+        out += list(group[f"{base}{k}"]["value"])
+        k += 1
+    return [str(v).strip() for v in out]
+
+
+def read_c3d(path: str | os.PathLike) -> MarkerData:
+    import ezc3d
+
+    path = Path(path)
+    where = str(path)
+    try:
+        c = ezc3d.c3d(str(path), extract_forceplat_data=False)
+    except Exception as e:  # ezc3d raises RuntimeError/IOError with C++ messages
+        raise ImportError_(f"{where}: not a readable C3D file ({e})") from None
+    params = c["parameters"]
+    point = params["POINT"]
+    notes: list[str] = []
+    labels = _labels(point)
+    pts = np.asarray(c["data"]["points"], float)  # (4, M, F)
+    if len(labels) != pts.shape[1]:
+        raise ImportError_(f"{where}: POINT:LABELS has {len(labels)} labels for {pts.shape[1]} points")
+    model = set()
+    for g in MODEL_OUTPUT_GROUPS:
+        if g in point:
+            model |= {str(v).strip() for v in np.atleast_1d(point[g]["value"])}
+    keep = [i for i, lab in enumerate(labels) if lab not in model]
+    if len(keep) < len(labels):
+        notes.append(f"{where}: {len(labels) - len(keep)} POINT entries are model outputs "
+                     f"({', '.join(g for g in MODEL_OUTPUT_GROUPS if g in point)}) and were left out")
+    units = np.atleast_1d(point.get("UNITS", {}).get("value", ["mm"]))
+    scale = unit_scale(units[0] if len(units) else "mm", f"{where} POINT:UNITS")
+    if scale != 1.0:
+        notes.append(f"{where}: coordinates converted from {units[0]} to mm")
+    res = np.asarray(c["data"]["meta_points"]["residuals"], float)[0]  # (M, F)
+    X = pts[:3].transpose(2, 1, 0)[:, keep] * scale
+    gap = (res.T[:, keep] < 0) | ~np.all(np.isfinite(X), axis=-1)
+    X[gap] = np.nan
+    names = unique_names([labels[i] for i in keep], where, notes)
+    fps = float(np.atleast_1d(point["RATE"]["value"])[0])
+    first = int(np.atleast_1d(params["TRIAL"]["ACTUAL_START_FIELD"]["value"])[0]) \
+        if "TRIAL" in params and "ACTUAL_START_FIELD" in params["TRIAL"] else 1
+    analogs = {}
+    an = np.asarray(c["data"]["analogs"], float)
+    if an.size and "ANALOG" in params:
+        alabels = unique_names(_labels(params["ANALOG"]), f"{where} ANALOG", notes)
+        rate = float(np.atleast_1d(params["ANALOG"]["RATE"]["value"])[0])
+        aunits = list(np.atleast_1d(params["ANALOG"].get("UNITS", {}).get("value", [])))
+        for k, lab in enumerate(alabels[: an.shape[1]]):
+            analogs[lab] = (an[0, k], rate, str(aunits[k]).strip() if k < len(aunits) else "")
+    return MarkerData(names, X, fps, first, analogs, notes, where)
+
+
+def write_c3d(path: str | os.PathLike, data: MarkerData, commands: dict | None = None) -> Path:
+    """Write markers (and DU commands, label -> (n_frames,) values) to a C3D file atomically."""
+    import ezc3d
+
+    n_frames, M, _ = data.X.shape
+    if n_frames > MAX_FRAMES:
+        raise ValueError(f"{path}: {n_frames} frames; ezc3d writes more than {MAX_FRAMES} frames "
+                         "wrongly: export the take in parts")
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [float(data.fps)]
+    c["parameters"]["POINT"]["LABELS"]["value"] = list(data.names)
+    c.add_parameter("POINT", "UNITS", ["mm"])
+    pts = np.ones((4, M, n_frames))
+    pts[:3] = data.X.transpose(2, 1, 0)
+    gap = ~np.all(np.isfinite(data.X), axis=-1).T  # (M, F)
+    pts[:3, gap] = 0.0
+    c["data"]["points"] = pts
+    residuals = np.where(gap, -1.0, 0.0)[None]
+    c["data"]["meta_points"]["residuals"] = residuals
+    c["data"]["meta_points"]["camera_masks"] = np.zeros((7, M, n_frames), dtype=bool)
+    if commands:
+        labels = list(commands)
+        c["parameters"]["ANALOG"]["RATE"]["value"] = [float(data.fps)]
+        c["parameters"]["ANALOG"]["LABELS"]["value"] = labels
+        c["parameters"]["ANALOG"]["UNITS"]["value"] = ["command"] * len(labels)
+        c["parameters"]["ANALOG"]["SCALE"]["value"] = [1.0] * len(labels)
+        c["parameters"]["ANALOG"]["OFFSET"]["value"] = [0] * len(labels)
+        c["parameters"]["ANALOG"]["GEN_SCALE"]["value"] = [1.0]
+        c["data"]["analogs"] = np.stack([np.asarray(commands[k], float) for k in labels])[None]
+    with atomic_path(path) as tmp:
+        c.write(str(tmp.with_suffix(".c3d")))
+        os.replace(tmp.with_suffix(".c3d"), tmp)
+    return Path(path)

@@ -1,0 +1,258 @@
+"""Readers for vendors' text exports of labeled 3D markers (layouts in shared/notes/vendor-formats.md).
+
+- OptiTrack Motive CSV (format versions 1.21 to 1.25): the key/value row, then the Type, Name,
+  (ID, Parent), measurement and axis rows, found by content (the axis row starts ``Frame,``).
+  Only ``Marker`` position columns are kept: rigid bodies, bones and their markers are ignored
+  and unlabeled markers left out (they cannot be followed across takes), each with a note.
+  ``Length Units`` (Meters by default) are converted to mm. A shared ``Asset:`` prefix is
+  dropped from the names (noted).
+- Qualisys QTM TSV 3D export: ``KEY<TAB>value`` header lines (``FILE_VERSION`` absent before
+  2.0.0), ``MARKER_NAMES``, the column row ``Frame<TAB>Time<TAB>n1 X...`` (an SMPTE column and
+  trailing tabs allowed), data in mm. Empty cells and 0.000 triplets are gaps (noted). A
+  header-less export (data only) needs the frame rate from the caller; its markers are named
+  ``M001``...
+- Vicon Nexus CSV export: the ``Trajectories`` section (title, rate, labels, ``Frame,Sub Frame``
+  axis row, units row, data); other sections are ignored with a note.
+
+All: blank cells are gaps; missing frame numbers become NaN rows (noted); a truncated last row,
+a row of the wrong width or a non-numeric cell is an error naming the file and line.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from mocap.interop.marker_data import ImportError_, MarkerData, unique_names, unit_scale
+
+
+def _lines(path: Path) -> list[str]:
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="strict")
+    except UnicodeDecodeError as e:
+        raise ImportError_(f"{path}: not a text export ({e})") from None
+    except FileNotFoundError:
+        raise ImportError_(f"{path}: file not found") from None
+    lines = text.splitlines()
+    if not lines:
+        raise ImportError_(f"{path}: empty file")
+    if not text.endswith("\n") and len(lines) > 1:
+        # a last line cut short: fewer fields than the line before it
+        sep = "\t" if "\t" in lines[-2] else ","
+        if len(lines[-1].rstrip(sep).split(sep)) < len(lines[-2].rstrip(sep).split(sep)):
+            raise ImportError_(f"{path} line {len(lines)}: truncated row (the file ends mid-row)")
+    return lines
+
+
+def _numeric_block(path: Path, rows: list[str], first_line: int, sep: str, width: int) -> np.ndarray:
+    """Parse data rows into floats (n_rows, width); blank -> NaN; errors name the line."""
+    out = np.full((len(rows), width), np.nan)
+    for i, row in enumerate(rows):  # text files of vendor exports are small; clarity first
+        cells = row.split(sep)
+        while cells and cells[-1] == "" and len(cells) > width:
+            cells.pop()
+        if len(cells) > width:
+            raise ImportError_(f"{path} line {first_line + i}: {len(cells)} cells, expected {width}")
+        for j, cell in enumerate(cells):
+            cell = cell.strip()
+            if cell == "":
+                continue
+            try:
+                out[i, j] = float(cell)
+            except ValueError:
+                raise ImportError_(f"{path} line {first_line + i}, column {j + 1}: expected a "
+                                   f"number, got {cell!r}") from None
+    return out
+
+
+def _fill_missing_frames(path: Path, frames: np.ndarray, X: np.ndarray, notes: list[str]):
+    frames = frames.astype(np.int64)
+    if frames.size == 0:
+        raise ImportError_(f"{path}: no data rows")
+    if np.any(np.diff(frames) <= 0):
+        k = int(np.flatnonzero(np.diff(frames) <= 0)[0])
+        raise ImportError_(f"{path}: frame numbers not increasing at frame {frames[k + 1]}")
+    full = np.arange(frames[0], frames[-1] + 1)
+    if full.size != frames.size:
+        notes.append(f"{path}: {full.size - frames.size} missing frame(s) between {frames[0]} and "
+                     f"{frames[-1]} inserted as gaps")
+        Y = np.full((full.size,) + X.shape[1:], np.nan)
+        Y[frames - frames[0]] = X
+        X = Y
+    return int(frames[0]), X
+
+
+def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
+    path = Path(path)
+    lines = _lines(path)
+    notes: list[str] = []
+    head = lines[0].split(",")
+    meta = {head[i].strip(): head[i + 1].strip() for i in range(0, len(head) - 1, 2)}
+    if "Format Version" not in meta:
+        raise ImportError_(f"{path} line 1: expected Motive's header ('Format Version,1.23,...')")
+    axis_row = next((i for i, ln in enumerate(lines) if ln.startswith("Frame,")), None)
+    if axis_row is None:
+        raise ImportError_(f"{path}: no column row starting 'Frame,' (Motive CSV export)")
+    header = [ln.split(",") for ln in lines[1:axis_row]]
+    types = next((r for r in header if any(c in ("Marker", "Rigid Body", "Unlabeled Marker",
+                                                    "Rigid Body Marker", "Bone", "Bone Marker")
+                                           for c in r)), None)
+    if types is None:
+        raise ImportError_(f"{path}: no Type row (Marker, Rigid Body, ...) above line {axis_row + 1}")
+    names_row = header[header.index(types) + 1]
+    measure = next((r for r in header if "Position" in r), None)
+    axes = lines[axis_row].split(",")
+    width = len(axes)
+    rate = meta.get("Export Frame Rate") or meta.get("Capture Frame Rate")
+    rate = float(rate) if rate else fps
+    if rate is None:
+        raise ImportError_(f"{path}: no frame rate in the header: give it (--fps)")
+    scale = unit_scale(meta.get("Length Units", "Meters"), f"{path} line 1 'Length Units'")
+    if scale != 1.0:
+        notes.append(f"{path}: coordinates converted from {meta.get('Length Units', 'Meters')} to mm")
+    cols: dict[str, dict[str, int]] = {}
+    ignored = set()
+    for j in range(2, width):
+        t = types[j].strip() if j < len(types) else ""
+        name = names_row[j].strip() if j < len(names_row) else ""
+        m = measure[j].strip() if measure is not None and j < len(measure) else "Position"
+        if t != "Marker":
+            if t:
+                ignored.add(t)
+            continue
+        if m != "Position":
+            continue
+        cols.setdefault(name, {})[axes[j].strip().upper()] = j
+    for t in sorted(ignored):
+        notes.append(f"{path}: '{t}' columns ignored (only labeled markers are imported)")
+    if not cols:
+        raise ImportError_(f"{path}: no labeled 'Marker' position columns")
+    data = _numeric_block(path, lines[axis_row + 1:], axis_row + 2, ",", width)
+    names = list(cols)
+    X = np.stack([np.stack([data[:, cols[n].get(a, -1)] if a in cols[n] else np.full(len(data), np.nan)
+                            for a in "XYZ"], axis=-1) for n in names], axis=1) * scale
+    prefixes = {n.split(":", 1)[0] for n in names if ":" in n}
+    if len(prefixes) == 1 and all(":" in n for n in names):
+        notes.append(f"{path}: asset prefix '{prefixes.pop()}:' dropped from marker names")
+        names = [n.split(":", 1)[1] for n in names]
+    names = unique_names(names, str(path), notes)
+    first, X = _fill_missing_frames(path, data[:, 0], X, notes)
+    return MarkerData(names, X, rate, first, {}, notes, str(path))
+
+
+def read_qtm_tsv(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
+    path = Path(path)
+    lines = _lines(path)
+    notes: list[str] = []
+    meta: dict[str, list[str]] = {}
+    i = 0
+    while i < len(lines) and lines[i] and re.match(r"^[A-Z_]+(\t|$)", lines[i]):
+        parts = lines[i].rstrip("\t").split("\t")
+        meta[parts[0]] = parts[1:]
+        i += 1
+    rate = float(meta["FREQUENCY"][0]) if "FREQUENCY" in meta else fps
+    if "FILE_VERSION" not in meta and meta:
+        notes.append(f"{path}: no FILE_VERSION (a QTM export older than 2.0.0)")
+    if i < len(lines) and lines[i].startswith("Frame\t"):
+        colrow = lines[i].rstrip("\t").split("\t")
+        start = i + 1
+    else:
+        colrow = None
+        start = i
+    if rate is None:
+        raise ImportError_(f"{path}: no FREQUENCY line: give the frame rate (--fps)")
+    if not meta:
+        notes.append(f"{path}: header-less export (data only): markers named M001...")
+    rows = [ln for ln in lines[start:]]
+    if colrow is not None:
+        width = len(colrow)
+        data = _numeric_block(path, rows, start + 1, "\t", width)
+        names = meta.get("MARKER_NAMES")
+        col_of = {c.strip(): j for j, c in enumerate(colrow)}
+        if names is None:
+            names = sorted({c[:-2] for c in col_of if c.endswith(" X")}, key=lambda c: col_of[c + " X"])
+        missing = [n for n in names if f"{n} X" not in col_of]
+        if missing:
+            raise ImportError_(f"{path} line {start}: no columns for markers {missing}")
+        X = np.stack([data[:, [col_of[f"{n} X"], col_of[f"{n} Y"], col_of[f"{n} Z"]]] for n in names],
+                     axis=1)
+        frames = data[:, col_of["Frame"]]
+    else:
+        n_markers = int(meta.get("NO_OF_MARKERS", [0])[0]) if meta else 0
+        first_cells = rows[0].rstrip("\t").split("\t")
+        width = len(first_cells)
+        data = _numeric_block(path, rows, start + 1, "\t", width)
+        n_markers = n_markers or width // 3
+        X = data[:, : 3 * n_markers].reshape(len(data), n_markers, 3)
+        names = meta.get("MARKER_NAMES") or [f"M{k + 1:03d}" for k in range(n_markers)]
+        frames = np.arange(1, len(data) + 1)
+    zero = np.all(X == 0.0, axis=-1)
+    if zero.any():
+        notes.append(f"{path}: {int(zero.sum())} samples of 0.000, 0.000, 0.000 read as gaps")
+        X[zero] = np.nan
+    names = unique_names(list(names), str(path), notes)
+    first, X = _fill_missing_frames(path, frames, X, notes)
+    return MarkerData(names, X, float(rate), first, {}, notes, str(path))
+
+
+def read_vicon_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
+    path = Path(path)
+    lines = _lines(path)
+    notes: list[str] = []
+    try:
+        top = next(i for i, ln in enumerate(lines) if ln.split(",")[0].strip() == "Trajectories")
+    except StopIteration:
+        raise ImportError_(f"{path}: no 'Trajectories' section (Vicon Nexus CSV export)") from None
+    rate = float(lines[top + 1].split(",")[0]) if lines[top + 1].split(",")[0].strip() else fps
+    labels = lines[top + 2].split(",")
+    axes = lines[top + 3].split(",")
+    if axes[:2] != ["Frame", "Sub Frame"]:
+        raise ImportError_(f"{path} line {top + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'")
+    units = lines[top + 4].split(",")
+    width = len(axes)
+    end = next((i for i in range(top + 5, len(lines)) if not lines[i].strip(", ")), len(lines))
+    if end < len(lines):
+        others = [ln.split(",")[0] for ln in lines[end:] if ln.split(",")[0].strip() in
+                  ("Devices", "Model Outputs", "Joints", "Segments", "Trajectories")]
+        if others:
+            notes.append(f"{path}: sections {others} ignored (only Trajectories are imported)")
+    data = _numeric_block(path, lines[top + 5: end], top + 6, ",", width)
+    names, cols = [], []
+    for j in range(2, width, 3):
+        names.append(labels[j].strip() if j < len(labels) else f"col{j}")
+        cols.append(j)
+    scale = unit_scale(units[2] if len(units) > 2 and units[2].strip() else "mm", f"{path} line {top + 5}")
+    X = np.stack([data[:, j: j + 3] for j in cols], axis=1) * scale
+    prefixes = {n.split(":", 1)[0] for n in names if ":" in n}
+    if len(prefixes) == 1 and all(":" in n for n in names):
+        notes.append(f"{path}: subject prefix '{prefixes.pop()}:' dropped from marker names")
+        names = [n.split(":", 1)[1] for n in names]
+    names = unique_names(names, str(path), notes)
+    first, X = _fill_missing_frames(path, data[:, 0], X, notes)
+    if rate is None:
+        raise ImportError_(f"{path} line {top + 2}: no frame rate: give it (--fps)")
+    return MarkerData(names, X, rate, first, {}, notes, str(path))
+
+
+def sniff(path: str | os.PathLike):
+    """The reader for a file, from its extension and first line."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext == ".c3d":
+        from mocap.interop.c3d_file import read_c3d
+
+        return read_c3d
+    if ext == ".tsv":
+        return read_qtm_tsv
+    if ext == ".csv":
+        first = _lines(path)[0]
+        if first.startswith("Format Version"):
+            return read_motive_csv
+        if first.split(",")[0].strip() in ("Trajectories", "Devices"):
+            return read_vicon_csv
+        raise ImportError_(f"{path} line 1: not a Motive ('Format Version,...') or Vicon Nexus "
+                           "('Trajectories') CSV export")
+    raise ImportError_(f"{path}: unknown file type {ext!r} (expected .c3d, .csv or .tsv)")
