@@ -34,3 +34,12 @@ def small_run(small_sim, tmp_path_factory):
     from mocap.pipeline import run_session
 
     return run_session(small_sim / "session", tmp_path_factory.mktemp("small_run"))
+
+
+@pytest.fixture(scope="session")
+def sample_run(tmp_path_factory):
+    """``mocap run`` on the committed sample session (what the README's main command does)."""
+    from mocap.pipeline import run_session
+
+    root = Path(__file__).resolve().parents[1] / "sample_data" / "session"
+    return run_session(root, tmp_path_factory.mktemp("sample_run"))

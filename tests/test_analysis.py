@@ -194,3 +194,21 @@ def test_motion_takes_follow_their_plans(small_run):
         # no hidden effect: the paper's design tracks its plan closely
         assert ev.rms_forward < 0.12 and ev.rms_backward < 0.12, (p, ev.rms_forward, ev.rms_backward)
         assert abs(ev.lag_s) < 0.15
+
+
+def test_sample_data_run_writes_every_output(sample_run):
+    import matplotlib.image as mpimg
+
+    out = sample_run.out_dir
+    for name in ("summary.json", "calibration.toml", "responses.parquet", "rejections.csv",
+                 "properties.csv", "linearity.csv", "audit.json", "audit.md", "session.rrd"):
+        assert (out / name).is_file(), name
+    figs = sorted((out / "figures").glob("*.png"))
+    names = {f.name for f in figs}
+    for du in (1, 4, 7, 12):
+        assert f"du{du:02d}_response.png" in names and f"du{du:02d}_displacement_field.png" in names
+    assert {"linearity.png", "property_chart.png"} <= names
+    assert sum(n.startswith("motion_") for n in names) == 3
+    for f in figs:
+        assert f.stat().st_size > 10_000, f.name
+        assert mpimg.imread(f)[..., :3].std() > 0.05, f.name

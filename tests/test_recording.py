@@ -75,3 +75,18 @@ def test_replay_without_display(small_run, capsys, monkeypatch):
     assert main(["replay", str(small_run.out_dir)]) == 0
     assert "rerun session.rrd" in capsys.readouterr().out
     assert main(["replay", str(small_run.out_dir / "nothing")]) == 1
+
+
+def test_sample_data_recording_loads_back(sample_run):
+    from rerun.chunk import RrdReader
+
+    rows = Counter()
+    for ch in RrdReader(sample_run.out_dir / "session.rrd").stream():
+        rows[ch.entity_path] += ch.num_rows
+    prefixes = ["/world/cameras/cam1/image/wand", "/world/cameras/cam1/image/blobs/rest",
+                "/world/calibration/wand", "/plots/calibration/residual_px", "/world/rest",
+                "/world/takes/rest/markers", "/world/takes/du04_t01/paths",
+                "/plots/commands/du04_t01", "/plots/du04/response", "/charts/property_chart",
+                "/annotations/rejections", "/annotations/audit"]
+    for p in prefixes:
+        assert rows[p] > 0, p
