@@ -60,7 +60,9 @@ def linearity_bars(path, dus, means, stds) -> Path:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(max(4, 0.5 * len(dus) + 2), 3.6))
     x = np.arange(len(dus))
-    ax.bar(x, means, yerr=stds, capsize=3, color="tab:blue", alpha=0.8)
+    means, stds = np.asarray(means, float), np.asarray(stds, float)
+    err = np.vstack([np.minimum(stds, means), np.minimum(stds, 1.0 - means)])  # within [0, 1]
+    ax.bar(x, means, yerr=err, capsize=3, color="tab:blue", alpha=0.8)
     ax.set_xticks(x, [str(d) for d in dus])
     ax.set_xlabel("DU")
     ax.set_ylabel("spatial linearity (PC1 share, 1)")
@@ -70,7 +72,8 @@ def linearity_bars(path, dus, means, stds) -> Path:
 
 
 def response_curves(path, du, name, fps, delta, keep, ramps, props) -> Path:
-    """Measured forward/backward delta vs command (mean and spread over markers), fitted sigmoids."""
+    """Measured forward/backward delta vs command (mean and spread over the fitted markers),
+    with the fitted sigmoids."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4.0))
     cgrid = np.linspace(0, 255, 256)

@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "export": "labeled trajectories to C3D (markers, rate, mm, commands as analog channels)",
     "replay": "open a run's Rerun recording (session.rrd) in the viewer",
     "audit": "capture-quality audit: calibration, cameras, markers, rejections",
+    "schedule": "identification battery of command files (rates, minor loops, DU pairs)",
     "design": "command files that realise a motion plan (A-E) from identified responses",
 }
 

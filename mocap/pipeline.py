@@ -296,8 +296,9 @@ def run_analyses(session: Session, recon: Reconstruction, averages, rejections, 
                                    du_names.get(avg.du, ""), rest, res.fields_mm[avg.du],
                                    res.keep[avg.du])
         figures.response_curves(fig / f"du{avg.du:02d}_response.png", avg.du,
-                                du_names.get(avg.du, ""), avg.fps, avg.delta, res.keep[avg.du],
-                                p.ramps, p)
+                                du_names.get(avg.du, ""), avg.fps,
+                                avg.delta_along if avg.delta_along is not None else avg.delta,
+                                res.fitted[avg.du], p.ramps, p)
     props = res.properties
     figures.linearity_bars(fig / "linearity.png", props["du"], props["linearity_mean"],
                            props["linearity_std"])
