@@ -24,16 +24,24 @@ def position_covariance(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cov, n
 
 
-def spatial_linearity(P: np.ndarray, noise_var_mm2: np.ndarray | float | None = None) -> np.ndarray:
+def spatial_linearity(P: np.ndarray, noise: np.ndarray | float | None = None) -> np.ndarray:
     """(n_markers,) first principal component's share of variance, in [0, 1] (NaN below 3 samples).
 
-    With ``noise_var_mm2`` (scalar or (n_markers,)), each principal variance is reduced by it
-    (floored at 0) first: the noise-corrected linearity.
+    ``noise`` makes it the noise-corrected linearity: either a noise covariance per marker
+    (n_markers, 3, 3) mm^2 (e.g. of the rest take), subtracted from the position covariance
+    before the eigen-decomposition (exact for anisotropic triangulation noise), or an isotropic
+    variance (scalar or (n_markers,)) subtracted from every principal variance; negative
+    variances are floored at 0.
     """
     cov, n = position_covariance(P)
+    noise_arr = None if noise is None else np.asarray(noise, float)
+    if noise_arr is not None and noise_arr.ndim == 3:
+        cov = cov - noise_arr
     lam = np.linalg.eigvalsh(cov)  # ascending
-    if noise_var_mm2 is not None:
-        lam = np.clip(lam - np.broadcast_to(np.asarray(noise_var_mm2, float), n.shape)[:, None], 0, None)
+    if noise_arr is not None and noise_arr.ndim < 3:
+        lam = lam - np.broadcast_to(noise_arr, n.shape)[:, None]
+    if noise_arr is not None:
+        lam = np.clip(lam, 0, None)
     total = lam.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         lin = lam[:, -1] / total

@@ -67,7 +67,8 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         keep = kept_markers(rejections, names, avg.du)
         pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])
         lin = spatial_linearity(pooled)
-        lin_c = spatial_linearity(pooled, None if noise_mm is None else np.asarray(noise_mm) ** 2)
+        lin_c = spatial_linearity(pooled, noise_cov_mm2 if noise_cov_mm2 is not None else
+                                  (None if noise_mm is None else np.asarray(noise_mm) ** 2))
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
         noise_var = None
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
@@ -81,7 +82,11 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                 var_mm2 = np.asarray(noise_mm) ** 2
                 if noise_cov_mm2 is not None and avg.direction is not None:
                     var_mm2 = np.einsum("mi,mij,mj->m", avg.direction, noise_cov_mm2, avg.direction)
-                noise_var = (var_mm2 / n_tr) / peak_mm**2
+                # the trial mean's noise, plus the noise of the rest reference v(0) (the mean of
+                # the lead-in frames), a per-marker offset that persists through the take
+                lead = max(int(np.flatnonzero(np.diff(avg.command) != 0)[0]) + 1
+                           if np.any(np.diff(avg.command) != 0) else 1, 1)
+                noise_var = (var_mm2 / n_tr) * (1.0 + 1.0 / lead) / peak_mm**2
         fit_keep = keep
         if noise_mm is not None:
             se = np.asarray(noise_mm) / np.sqrt(n_tr)

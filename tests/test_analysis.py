@@ -160,6 +160,9 @@ def test_properties_match_truth(small_sim, small_run):
         # of the noise after the correction; the paper preset's 10 trials: benchmarks/)
         assert abs(e["dyssynchrony"] - t["dyssynchrony"]) <= 0.35 * t["dyssynchrony"] + 0.003, du
         assert e["dyssynchrony_raw"] > e["dyssynchrony"]
+        # the true paths are straight: the estimator's formula on the noise-free truth gives 1;
+        # the noise-corrected linearity (rest-take noise covariance removed) is within 0.02
+        assert abs(e["linearity_corrected_mean"] - 1.0) < 0.02, du
 
 
 def test_property_chart_separates_feedback_dus(small_run):
