@@ -85,6 +85,15 @@ def _fill_missing_frames(path: Path, frames: np.ndarray, X: np.ndarray, notes: l
     return int(frames[0]), X
 
 
+def _drop_shared_prefix(names: list[str], path: Path, what: str, notes: list[str]) -> list[str]:
+    """Drop a ``Prefix:`` every name shares (one asset or subject), noting it."""
+    prefixes = {n.split(":", 1)[0] for n in names if ":" in n}
+    if len(prefixes) == 1 and all(":" in n for n in names):
+        notes.append(f"{path}: {what} prefix '{prefixes.pop()}:' dropped from marker names")
+        return [n.split(":", 1)[1] for n in names]
+    return names
+
+
 def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
     path = Path(path)
     lines = _lines(path)
@@ -134,10 +143,7 @@ def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> Marker
     names = list(cols)
     X = np.stack([np.stack([data[:, cols[n].get(a, -1)] if a in cols[n] else np.full(len(data), np.nan)
                             for a in "XYZ"], axis=-1) for n in names], axis=1) * scale
-    prefixes = {n.split(":", 1)[0] for n in names if ":" in n}
-    if len(prefixes) == 1 and all(":" in n for n in names):
-        notes.append(f"{path}: asset prefix '{prefixes.pop()}:' dropped from marker names")
-        names = [n.split(":", 1)[1] for n in names]
+    names = _drop_shared_prefix(names, path, "asset", notes)
     names = unique_names(names, str(path), notes)
     first, X = _fill_missing_frames(path, data[:, 0], X, notes)
     return MarkerData(names, X, rate, first, {}, notes, str(path))
@@ -226,10 +232,7 @@ def read_vicon_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerD
         cols.append(j)
     scale = unit_scale(units[2] if len(units) > 2 and units[2].strip() else "mm", f"{path} line {top + 5}")
     X = np.stack([data[:, j: j + 3] for j in cols], axis=1) * scale
-    prefixes = {n.split(":", 1)[0] for n in names if ":" in n}
-    if len(prefixes) == 1 and all(":" in n for n in names):
-        notes.append(f"{path}: subject prefix '{prefixes.pop()}:' dropped from marker names")
-        names = [n.split(":", 1)[1] for n in names]
+    names = _drop_shared_prefix(names, path, "subject", notes)
     names = unique_names(names, str(path), notes)
     first, X = _fill_missing_frames(path, data[:, 0], X, notes)
     if rate is None:
