@@ -20,6 +20,7 @@ COMMANDS: dict[str, str] = {
     "import": "vendors' exports (C3D, Motive CSV, QTM TSV, Vicon CSV) to a labeled session",
     "export": "labeled trajectories to C3D (markers, rate, mm, commands as analog channels)",
     "replay": "open a run's Rerun recording (session.rrd) in the viewer",
+    "batch": "run many sessions in parallel on Dask (a local cluster or a scheduler)",
     "audit": "capture-quality audit: calibration, cameras, markers, rejections",
     "schedule": "identification battery of command files (rates, minor loops, DU pairs)",
     "design": "command files that realise a motion plan (A-E) from identified responses",
