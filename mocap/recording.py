@@ -12,8 +12,9 @@ capture's own timelines ``frame`` (sequence) and ``time`` (seconds; each take st
   marker, orange: in a 3D point left unlabeled, red: in no point, a ghost) for the wand take and a
   subset of takes (all on request); ``image/wand``: the wand sightings the calibration used
   (green) and rejected (red);
-- ``world/calibration/wand``: the fitted wand per frame; ``plots/calibration/residual_px``: each
-  camera's worst marker residual per wand frame;
+- ``world/calibration/wand``: the fitted wand per frame; ``world/calibration/ground``: the
+  ground square's markers as measured; ``plots/calibration/residual_px``: each camera's worst
+  marker residual per wand frame;
 - ``world/rest``: the markers at rest; ``world/rejected``: rejected markers, labeled with why;
 - ``world/takes/<take>/markers``: labeled 3D markers over time; ``.../paths``: each marker's
   trajectory as a line strip;
@@ -125,6 +126,12 @@ def _log_rig_and_calibration(rec, rr, result, fps):
         colours = np.where(used[:, None], np.array(GREEN, np.uint8), np.array(RED, np.uint8))
         _points_over_time(rec, rr, f"world/cameras/{cid}/image/wand", np.repeat(obs.frame[sel], n_w),
                           fps, obs.uv[sel].reshape(-1, 2), colors=colours)
+    if calib.ground is not None:  # the ground square as measured, in the world frame it defines
+        g = calib.ground
+        pts = g.points_mm @ g.R.T + g.t
+        rec.log("world/calibration/ground", rr.Points3D(pts, radii=1.5, colors=(80, 160, 255),
+                                                        labels=[f"G{k + 1}" for k in range(len(pts))]),
+                static=True)
     if calib.wand_points_mm is not None:
         F, n_w, _ = calib.wand_points_mm.shape
         _points_over_time(rec, rr, "world/calibration/wand", np.repeat(calib.wand_frames, n_w), fps,

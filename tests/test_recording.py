@@ -34,6 +34,7 @@ def test_recording_holds_rig_markers_and_plots(small_run, chunks):
         assert rows[f"/world/cameras/{c}/image/wand"] > 100
         assert rows[f"/world/cameras/{c}/image/blobs/rest"] > 0
     assert rows["/world/calibration/wand"] == len(small_run.calibration.wand_frames)
+    assert rows["/world/calibration/ground"] == 1
     for take in session.takes:
         if take.kind not in ("rest", "response", "motion"):
             continue
