@@ -36,6 +36,30 @@ class SessionAnalysis:
     motions: list = field(default_factory=list)  # (take, plan, MotionEvaluation)
 
 
+def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
+    """(M,) noise variance of each marker's normalised curve, measured on the curve itself.
+
+    Where the command is held at its lowest or highest value the true response is flat, so half
+    the mean squared frame-to-frame difference there is the variance of the curve's white noise
+    (trial-mean measurement noise and skin jitter alike, in delta units, whatever the noise's
+    direction). The rest reference v(0), the mean of the lead-in frames, adds a per-marker offset
+    that persists through the take: its variance (the white variance over the lead length) is
+    added.
+    """
+    c = np.asarray(command)
+    flat = (c == c.min()) | (c == c.max())
+    pair = flat[1:] & flat[:-1] & (c[1:] == c[:-1])
+    diff = np.diff(delta, axis=0)[pair]
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        white = 0.5 * np.nanmean(diff**2, axis=0)
+    change = np.flatnonzero(np.diff(c) != 0)
+    lead = int(change[0]) + 1 if change.size else 1
+    return white * (1.0 + 1.0 / max(lead, 1))
+
+
 def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
     """(M,) True for markers not rejected for ``du`` (nor for every DU)."""
     names = list(names)
@@ -72,21 +96,8 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
         noise_var = None
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
-        if noise_mm is not None and avg.along_mm is not None:
-            import warnings
-
-            with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # markers that never reach 0.5
-                peak_mm = np.nanmedian(np.where(np.abs(delta) > 0.5, avg.along_mm / delta, np.nan),
-                                       axis=0)
-                var_mm2 = np.asarray(noise_mm) ** 2
-                if noise_cov_mm2 is not None and avg.direction is not None:
-                    var_mm2 = np.einsum("mi,mij,mj->m", avg.direction, noise_cov_mm2, avg.direction)
-                # the trial mean's noise, plus the noise of the rest reference v(0) (the mean of
-                # the lead-in frames), a per-marker offset that persists through the take
-                lead = max(int(np.flatnonzero(np.diff(avg.command) != 0)[0]) + 1
-                           if np.any(np.diff(avg.command) != 0) else 1, 1)
-                noise_var = (var_mm2 / n_tr) * (1.0 + 1.0 / lead) / peak_mm**2
+        if noise_mm is not None:
+            noise_var = delta_noise_variance(delta, avg.command)
         fit_keep = keep
         if noise_mm is not None:
             se = np.asarray(noise_mm) / np.sqrt(n_tr)

@@ -50,11 +50,12 @@ def normalized_response(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFr
 
 def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame | None,
                    n_frames: int, fps: float, trial: int,
-                   rng: np.random.Generator | None) -> np.ndarray:
+                   rng: np.random.Generator | None, skin_jitter: bool = True) -> np.ndarray:
     """True marker positions (n_frames, n_markers, 3) mm of a take.
 
-    With ``rng`` the trial-to-trial variation and the skin's jitter are drawn (a real take);
-    with ``rng=None`` the noise-free mean response is returned.
+    With ``rng`` the trial-to-trial variation and the skin's jitter are drawn (a real take;
+    ``skin_jitter=False`` draws the same numbers but leaves the jitter out: the take's response
+    without its frame-to-frame noise); with ``rng=None`` the noise-free mean response.
     """
     dus = take_dus(face, rows)
     n_sel = len(dus)
@@ -68,5 +69,7 @@ def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame |
             D = D * (1.0 + rng.normal(0.0, TRIAL_AMPLITUDE_SD, D.shape[:2]))[..., None]
         pos += effect.displacement(y, D, face.normals)
     if rng is not None:
-        pos += rng.normal(0.0, SKIN_JITTER_MM, pos.shape)
+        jitter = rng.normal(0.0, SKIN_JITTER_MM, pos.shape)
+        if skin_jitter:
+            pos += jitter
     return pos

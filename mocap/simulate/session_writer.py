@@ -205,9 +205,11 @@ def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: floa
                     keep: dict | None = None) -> pd.DataFrame:
     """The paper's indices of the true face, defined as the estimator defines them.
 
-    Per DU: the noise-free mean response to the paper's trapezoid (trial 1, the hidden effect
-    included), normalised like the pipeline's (``analysis.displacement.normalized_along``), fitted
-    by the same code (``analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
+    Per DU: the mean over the session's trials of the true responses to the paper's trapezoid
+    (each trial with its own trial-to-trial variation and the hidden effect, as the pipeline
+    averages them, but without the skin's frame-to-frame jitter and without measurement noise),
+    normalised like the pipeline's (``analysis.displacement.normalized_along``), fitted by the
+    same code (``analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
     marker names, e.g. the ones the pipeline fitted) when given; else those whose true peak
     displacement reaches ``min_displacement_mm`` (default: the pipeline's signal-to-noise rule at
     the nominal noise, 20 x 0.025 mm / sqrt(trials), and at least 0.05 mm), the nose-bridge marker
@@ -224,7 +226,9 @@ def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: floa
     for du in face.du_ids:
         sched = trapezoid(du)
         n_frames = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
-        pos = true_positions(face, cfg.effect, sched, n_frames, cfg.fps, 1, None)
+        pos = np.mean([true_positions(face, cfg.effect, sched, n_frames, cfg.fps, k,
+                                      take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
+                       for k in range(1, cfg.n_trials + 1)], axis=0)
         d = pos - face.rest_mm[None]
         window = max(1, int(round(NORMALISE_S * cfg.fps)))
         disp, _ = normalized(d, window)
