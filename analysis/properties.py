@@ -14,10 +14,9 @@ Indices: sensitivity alpha_n = (alpha_fwd + alpha_bwd) / 2; hysteresis beta_fwd 
 (command units; positive when the backward curve stays high); dyssynchrony gamma = the mean over
 the take's frames of the sample standard deviation of delta_m(t) over the markers
 (``dyssynchrony_raw``, the paper's formula). Measurement noise inflates that spread: a marker
-moving 0.1 mm with 0.01 mm of noise on its trial mean has 0.1 of noise in its delta. Given each
-marker's noise variance in delta units, ``dyssynchrony`` subtracts the markers' mean noise
-variance from the variance over markers at every frame (floored at 0) before the square root:
-an estimate of the noise-free index.
+moving 0.1 mm with 0.01 mm of noise on its trial mean has 0.1 of noise in its delta.
+``dyssynchrony`` estimates the noise-free index: the same formula on command-step means with
+the noise's share of the variance removed (:func:`dyssynchrony_steps`).
 
 The fits use ``delta_along`` when given (the displacement along each marker's principal
 direction, whose noise has zero mean), METHOD.md's |d| / max |d| otherwise.
@@ -132,15 +131,56 @@ def _pooled(t, delta_w, weights=None):
                         a0=np.full(W.shape[0], first.a[0]), b0=np.full(W.shape[0], first.b[0]))
 
 
+def dyssynchrony_steps(delta: np.ndarray, keep: np.ndarray, command: np.ndarray,
+                       white_var: np.ndarray | None = None, offset_var: np.ndarray | None = None
+                       ) -> float:
+    """Dyssynchrony on command-step means, corrected for noise.
+
+    The take is cut into runs of constant command (steps); each marker's curve is averaged over
+    each step, the variance over the kept markers taken per step, the noise's share removed
+    (``white_var`` / step length + ``offset_var``, means over the markers), floored at 0, and the
+    square roots averaged with the steps' lengths as weights. For a face whose response is
+    constant within a step this equals the paper's per-frame formula without noise; averaging
+    within steps first shrinks the noise (and the bias its floor at 0 leaves) by the step length.
+    """
+    d = delta[:, keep]
+    c = np.asarray(command)
+    start = np.r_[0, np.flatnonzero(np.diff(c) != 0) + 1]
+    length = np.diff(np.r_[start, c.size])
+    seg = np.repeat(np.arange(start.size), length)
+    ok = np.isfinite(d)
+    sums = np.zeros((start.size, d.shape[1]))
+    counts = np.zeros((start.size, d.shape[1]))
+    np.add.at(sums, seg, np.where(ok, d, 0.0))
+    np.add.at(counts, seg, ok)
+    import warnings
+
+    with warnings.catch_warnings(), np.errstate(invalid="ignore", divide="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        means = np.where(counts > 0, sums / counts, np.nan)
+        var = np.nanvar(means, axis=1, ddof=1)
+        if white_var is not None:
+            var = var - np.nanmean(np.asarray(white_var)[keep]) / length
+        if offset_var is not None:
+            var = var - np.nanmean(np.asarray(offset_var)[keep])
+        u = np.sqrt(np.clip(var, 0.0, None))
+        good = np.isfinite(u)
+        return float(np.sum(u[good] * length[good]) / max(np.sum(length[good]), 1))
+
+
 def du_properties(du: int, delta: np.ndarray, command: np.ndarray, fps: float, keep: np.ndarray,
                   *, n_boot: int = 200, seed: int = 0,
-                  noise_var: np.ndarray | None = None) -> DUProperties:
+                  noise_var: np.ndarray | None = None,
+                  offset_var: np.ndarray | None = None) -> DUProperties:
     """Fit a DU's forward and backward responses and compute its indices.
 
     delta : (n_frames, n_markers) normalised displacement (trial mean).
     command : (n_frames,) the DU's command series.
     keep : (n_markers,) bool, markers not rejected for this DU.
-    noise_var : optional (n_markers,) noise variance of each marker's delta (see module doc).
+    noise_var : optional (n_markers,) white-noise variance of each marker's delta per frame;
+    offset_var : optional (n_markers,) variance of its constant offset (the rest reference).
+    ``dyssynchrony`` is computed on command-step means with the noise removed
+    (:func:`dyssynchrony_steps`), ``dyssynchrony_raw`` by the paper's per-frame formula.
     """
     fwd, bwd = find_ramps(command, fps)
     keep = np.asarray(keep, bool) & np.any(np.isfinite(delta), axis=0)
@@ -173,5 +213,6 @@ def du_properties(du: int, delta: np.ndarray, command: np.ndarray, fps: float, k
         for k, v in boots.items():
             ci[k] = (float(np.nanpercentile(v, 2.5)), float(np.nanpercentile(v, 97.5)))
     return DUProperties(du, out["fwd"], out["bwd"], float(sens), float(hyst),
-                        dyssynchrony(delta, keep, noise_var), dyssynchrony(delta, keep),
+                        dyssynchrony_steps(delta, keep, command, noise_var, offset_var),
+                        dyssynchrony(delta, keep),
                         int(idx.size), ci, per_marker, (fwd, bwd))

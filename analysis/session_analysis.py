@@ -36,15 +36,15 @@ class SessionAnalysis:
     motions: list = field(default_factory=list)  # (take, plan, MotionEvaluation)
 
 
-def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
-    """(M,) noise variance of each marker's normalised curve, measured on the curve itself.
+def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(white (M,), offset (M,)): noise variances of each marker's normalised curve, measured
+    on the curve itself.
 
     Where the command is held at its lowest or highest value the true response is flat, so half
     the mean squared frame-to-frame difference there is the variance of the curve's white noise
     (trial-mean measurement noise and skin jitter alike, in delta units, whatever the noise's
     direction). The rest reference v(0), the mean of the lead-in frames, adds a per-marker offset
-    that persists through the take: its variance (the white variance over the lead length) is
-    added.
+    that persists through the take: its variance is the white variance over the lead length.
     """
     c = np.asarray(command)
     flat = (c == c.min()) | (c == c.max())
@@ -57,7 +57,7 @@ def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
         white = 0.5 * np.nanmean(diff**2, axis=0)
     change = np.flatnonzero(np.diff(c) != 0)
     lead = int(change[0]) + 1 if change.size else 1
-    return white * (1.0 + 1.0 / max(lead, 1))
+    return white, white / max(lead, 1)
 
 
 def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
@@ -94,10 +94,10 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         lin_c = spatial_linearity(pooled, noise_cov_mm2 if noise_cov_mm2 is not None else
                                   (None if noise_mm is None else np.asarray(noise_mm) ** 2))
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
-        noise_var = None
+        noise_var, offset_var = None, None
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
         if noise_mm is not None:
-            noise_var = delta_noise_variance(delta, avg.command)
+            noise_var, offset_var = delta_noise_variance(delta, avg.command)
         fit_keep = keep
         if noise_mm is not None:
             se = np.asarray(noise_mm) / np.sqrt(n_tr)
@@ -105,7 +105,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                                       -np.inf), axis=0)
             fit_keep = keep & (peak >= MIN_SNR * se)
         props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=n_boot,
-                              noise_var=noise_var)
+                              noise_var=noise_var, offset_var=offset_var)
         hold = avg.command == avg.command.max()
         field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
