@@ -121,7 +121,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                "linearity_mean": float(np.nanmean(lin[keep])), "linearity_std": float(np.nanstd(lin[keep])),
                "max_displacement_mm": float(np.nanmax(peak[keep])) if keep.any() else np.nan,
                "n_markers": int(props.n_markers),
-               "linearity_corrected_mean": float(np.nanmean(lin_c[keep])),
+               # over the markers in the fits: noise correction is only as good as the noise
+               # estimate, so it is reported where the motion is well above the noise
+               "linearity_corrected_mean": float(np.nanmean(lin_c[fit_keep])),
                "dyssynchrony_raw": props.dyssynchrony_raw}
         for k, (lo, hi) in props.ci.items():
             row[f"{k}_ci_lo"] = lo
