@@ -75,3 +75,42 @@ def test_pi_vectorises_over_channels():
     y = prandtl_ishlinskii(x, thr, w)
     for ch in range(2):
         np.testing.assert_allclose(y[:, ch], prandtl_ishlinskii(x[:, ch], thr[ch], w[ch]))
+
+
+def test_pi_logistic_fit_recovers_parameters_from_minor_loops():
+    from analysis.hysteresis_fit import fit_pi_logistic, pi_logistic
+    from mocap.schedules import ramp_through, sample_commands, trapezoid
+
+    t = np.arange(0, 6.0, 1 / 120)
+    c_trap = sample_commands(trapezoid(4), [4], t)[:, 0]
+    minor = ramp_through([255 * f for f in (0.8, 0.3, 1.0, 0.1, 0.6, 0.0)], du=4)
+    t2 = np.arange(0, float(minor.time_s.max()) + 0.5, 1 / 120)
+    c = np.concatenate([c_trap, sample_commands(minor, [4], t2)[:, 0]])
+    alpha = np.array([0.03, 0.06, 0.09])
+    beta = np.array([120.0, 135.0, 128.0])
+    r = np.array([5.0, 30.0, 43.0])
+    y = pi_logistic(c, alpha, beta, r) + np.random.default_rng(0).normal(0, 0.01, (c.size, 3))
+    fit = fit_pi_logistic(c, y, alpha0=0.05, beta0=128.0, r0=20.0)
+    np.testing.assert_allclose(fit.alpha, alpha, rtol=0.05)
+    np.testing.assert_allclose(fit.beta, beta, atol=2.0)
+    np.testing.assert_allclose(fit.hysteresis, 2 * r, atol=3.0)
+    assert np.all(fit.rms < 0.012)
+
+
+def test_pi_logistic_is_the_virtual_faces_static_model():
+    """Fitted on the virtual face's noise-free response, the model returns the face's truth."""
+    from analysis.hysteresis_fit import fit_pi_logistic
+    from mocap.schedules import sample_commands, trapezoid
+    from mocap.simulate.effects import HiddenEffect
+    from mocap.simulate.face import make_face
+    from mocap.simulate.motion import normalized_response
+
+    face = make_face(np.random.default_rng(2), 20, (4,))
+    _, y = normalized_response(face, HiddenEffect(), trapezoid(4), 606, 120.0, 1)
+    y = y[:, 0]  # (frames, markers)
+    c = sample_commands(trapezoid(4), [4], np.arange(606) / 120.0)[:, 0]
+    fit = fit_pi_logistic(c, y, alpha0=0.08, beta0=130.0, r0=40.0)
+    big = np.linalg.norm(face.D_mm[0], axis=-1) > 0  # every marker: the curve is noise-free
+    np.testing.assert_allclose(fit.alpha[big], face.alpha[0][big], rtol=0.02)
+    np.testing.assert_allclose(fit.beta[big], face.beta[0][big], atol=1.0)
+    np.testing.assert_allclose(fit.r[big], face.r_half[0][big], atol=1.5)
