@@ -116,7 +116,5 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *,
         converged |= lam > 1e10
         if converged.all():
             break
-    n_eff = np.maximum(np.sum(W > 0, axis=1), 1)
-    rms = np.sqrt(c / np.maximum(np.sum(W, axis=1), 1e-300) * 1.0)
-    del n_eff
+    rms = np.sqrt(c / np.maximum(np.sum(W, axis=1), 1e-300))  # weighted RMS residual
     return LogisticFit(a, b, rms, converged)

@@ -15,7 +15,7 @@ from analysis.design import PlanTiming
 from analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
 from analysis.linearity import spatial_linearity
 from analysis.plans import PLAN_NAMES
-from analysis.properties import DUProperties, du_properties
+from analysis.properties import du_properties
 
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
 

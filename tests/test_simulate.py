@@ -13,7 +13,7 @@ import pytest
 from analysis.response import normalized_sigmoid
 from calib.calibration_file import read_calibration
 from mocap.schedules import identification_battery, sample_commands, trapezoid
-from mocap.simulate import HiddenEffect, preset, simulate
+from mocap.simulate import HiddenEffect
 from mocap.simulate.face import make_face
 from mocap.simulate.motion import normalized_response, true_positions
 
