@@ -339,17 +339,16 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     out.mkdir(parents=True, exist_ok=True)
     say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
 
-    counts = {"takes": {}, "rows": 0, "frames": 0}
+    # the manifest, the take headers and every command file are checked here; each take's rows
+    # are validated by the stage that reads them (read once: 95 M blob rows in the paper study)
+    counts = {"takes": {}, "rows": 0}
     t = time.perf_counter()
     for take in session.takes:
-        df = session.read_take(take.name)
         counts["takes"][take.kind] = counts["takes"].get(take.kind, 0) + 1
-        counts["rows"] += len(df)
-        counts["frames"] += int(df["frame"].max()) + 1
         if take.commands is not None:
             session.read_commands(take.name)
     timings["validate_s"] = time.perf_counter() - t
-    say(f"validated {counts['rows']} rows in {timings['validate_s']:.1f} s")
+    say(f"session checked: {len(session.takes)} takes, command files valid")
     stages = ["validate"]
     warnings_list = list(session.warnings)
 
@@ -370,6 +369,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     recon = reconstruct_all(session, out, calibration, settings, say)
     timings["reconstruct_s"] = time.perf_counter() - t
     stages.append("reconstruct" if session.dimension == "2d" else "load_labeled")
+    counts["rows"] = int(sum(s.get("blobs", s.get("points", 0)) for s in recon.stats["takes"].values()))
 
     # --- trials, noise floor, rejections -> responses.parquet, rejections.csv -----------------
     t = time.perf_counter()

@@ -55,6 +55,6 @@ def run(args: argparse.Namespace) -> int:
         return 1
     s = result.summary
     print(f"{s['session']['name']}: {sum(s['counts']['takes'].values())} takes, "
-          f"{s['counts']['rows']} rows; stages: {', '.join(s['stages'])}; "
+          f"{s['counts']['rows']} face-take rows; stages: {', '.join(s['stages'])}; "
           f"results in {result.out_dir}")
     return 0
