@@ -179,3 +179,24 @@ def test_c3d_writer_refuses_what_it_would_write_wrongly(tmp_path):
     d = MarkerData(["a"], np.zeros((70000, 1, 3)), 120.0)
     with pytest.raises(ValueError, match="65535"):
         write_c3d(tmp_path / "long.c3d", d)
+
+
+def test_duplicate_labels_and_unknown_units_are_reported(tmp_path):
+    dup = MOTIVE.replace("Face:M002,Face:M002,Face:M002", "Face:M001,Face:M001,Face:M001")
+    p = tmp_path / "dup.csv"
+    p.write_text(dup)
+    d = read_motive_csv(p)
+    assert d.names == ["M001", "M001~2"]  # the second set is a second marker, not an overwrite
+    np.testing.assert_allclose(d.X[0, 1], [20.0, 210.0, 31.0])
+    assert any("duplicate label" in n for n in d.notes)
+    p2 = tmp_path / "units.csv"
+    p2.write_text(MOTIVE.replace("Length Units,Meters", "Length Units,Furlongs"))
+    with pytest.raises(ImportError_, match=r"units.csv line 1 'Length Units': unknown length unit 'Furlongs'"):
+        read_motive_csv(p2)
+    q = tmp_path / "dup.tsv"
+    q.write_text(QTM.replace("MARKER_NAMES\tM001\tM002", "MARKER_NAMES\tM001\tM001")
+                 .replace("M002 X\tM002 Y\tM002 Z", "M001 X\tM001 Y\tM001 Z"))
+    d2 = read_qtm_tsv(q)
+    assert d2.names == ["M001", "M001~2"]
+    np.testing.assert_allclose(d2.X[0], [[1, 2, 3], [4, 5, 6]])
+    assert any("duplicate label 'M001' renamed 'M001~2'" in n for n in d2.notes)

@@ -134,7 +134,14 @@ def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> Marker
             continue
         if m != "Position":
             continue
-        cols.setdefault(name, {})[axes[j].strip().upper()] = j
+        axis = axes[j].strip().upper()
+        key, k = name, 1
+        while axis in cols.get(key, {}):  # the same label again: a second marker, kept apart
+            k += 1
+            key = f"{name}~{k}"
+        if k > 1 and key not in cols:
+            notes.append(f"{path}: duplicate label {name!r} (column {j + 1}) renamed {key!r}")
+        cols.setdefault(key, {})[axis] = j
     for t in sorted(ignored):
         notes.append(f"{path}: '{t}' columns ignored (only labeled markers are imported)")
     if not cols:
@@ -177,15 +184,23 @@ def read_qtm_tsv(path: str | os.PathLike, fps: float | None = None) -> MarkerDat
         width = len(colrow)
         data = _numeric_block(path, rows, start + 1, "\t", width)
         names = meta.get("MARKER_NAMES")
-        col_of = {c.strip(): j for j, c in enumerate(colrow)}
+        cells = [c.strip() for c in colrow]
         if names is None:
-            names = sorted({c[:-2] for c in col_of if c.endswith(" X")}, key=lambda c: col_of[c + " X"])
-        missing = [n for n in names if f"{n} X" not in col_of]
-        if missing:
-            raise ImportError_(f"{path} line {start}: no columns for markers {missing}")
-        X = np.stack([data[:, [col_of[f"{n} X"], col_of[f"{n} Y"], col_of[f"{n} Z"]]] for n in names],
-                     axis=1)
-        frames = data[:, col_of["Frame"]]
+            names = [c[:-2] for c in cells if c.endswith(" X")]
+        # the k-th marker of a name takes the k-th columns of that name (duplicate labels stay
+        # apart)
+        seen: dict[str, int] = {}
+        idx = []
+        for n in names:
+            k = seen.get(n, 0)
+            seen[n] = k + 1
+            try:
+                idx.append([[j for j, c in enumerate(cells) if c == f"{n} {a}"][k] for a in "XYZ"])
+            except IndexError:
+                raise ImportError_(f"{path} line {start}: no X, Y, Z columns for marker {n!r}"
+                                   + (f" (occurrence {k + 1})" if k else "")) from None
+        X = np.stack([data[:, cols] for cols in idx], axis=1)
+        frames = data[:, cells.index("Frame")]
     else:
         n_markers = int(meta.get("NO_OF_MARKERS", [0])[0]) if meta else 0
         first_cells = rows[0].rstrip("\t").split("\t")
