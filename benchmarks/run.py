@@ -11,6 +11,8 @@ Stages:
 - ``simulate``: ``mocap simulate --preset paper`` (target: under 10 minutes, under 4 GB);
 - ``calibrate``: wand calibration of the paper session's rig (target: under 20 s on 2 cores);
 - ``triangulate``: known correspondences, 2 M points x 6 cameras (target >= 3 M points/s);
+- ``peer``: the same on 200 k points against aniposelib, installed only in a venv of its own under
+  ``benchmarks/cache`` (target: >= 30 x its throughput with an equal or smaller 3D error);
 - ``reconstruct``: correspondence, triangulation and labeling of every face take (targets: the
   whole preset under 3 minutes, >= 300 k points/s, under 8 GB);
 - ``run``: ``mocap run`` end to end (target: under 5 minutes, 8 GB), and the paper indices
@@ -34,6 +36,7 @@ HERE = Path(__file__).resolve().parent
 CACHE = HERE / "cache" / "paper"
 TARGETS = {"simulate": {"seconds": 600, "peak_gb": 4.0}, "calibrate": {"seconds": 20},
            "triangulate": {"kernel_points_per_s": 3_000_000},
+           "peer": {"throughput_ratio": 30},
            "reconstruct": {"reconstruct_seconds": 180, "points_per_s": 300_000, "peak_gb": 8.0},
            "run": {"end_to_end_seconds": 300, "peak_gb": 8.0}}
 
@@ -92,6 +95,56 @@ def stage_triangulate() -> dict:
             "with_undistortion_points_per_s": round(n / t_full),
             "rms_error_mm": round(float(err), 5),
             "residual_px_mean": round(float(np.nanmean(res.residual_px)), 4)}
+
+
+def stage_peer() -> dict:
+    """Ours against aniposelib (installed only in the benchmark's own venv) on the same
+    cameras and correspondences: throughput ratio and both 3D errors."""
+    import numpy as np
+
+    from calib.calibration_file import read_calibration
+    from calib.camera import rodrigues_from_rotation
+    from calib.triangulation import triangulate
+
+    venv = HERE / "cache" / "peer-venv"
+    py = venv / "bin" / "python"
+    if not py.exists():
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", "aniposelib"], check=True)
+    rig, _ = read_calibration(CACHE / "truth" / "cameras.toml")
+    rng = np.random.default_rng(1)
+    n = 200_000
+    X = rng.uniform([-40, 60, -20], [110, 220, 60], (n, 3))
+    uv = rig.project(X) + rng.normal(0, 0.08, (len(rig), n, 2))
+    work = HERE / "cache"
+    np.savez(work / "peer_obs.npz", uv=uv, X=X)
+    cams = [{"id": c.id, "width": c.width, "height": c.height, "K": c.K.tolist(),
+             "dist": c.dist.tolist(), "rvec": rodrigues_from_rotation(c.R).tolist(),
+             "t": c.t.tolist()} for c in rig]
+    (work / "peer_cams.json").write_text(json.dumps(cams))
+    out = subprocess.run([str(py), str(HERE / "peer_triangulate.py"), str(work / "peer_cams.json"),
+                          str(work / "peer_obs.npz")], check=True, capture_output=True, text=True)
+    peer = json.loads(out.stdout.strip().splitlines()[-1])
+    from calib.triangulation import normalized_observations
+    from calib.triangulation_kernel import triangulate_normalized
+
+    triangulate(rig, uv[:, :1000])
+    t0 = time.perf_counter()
+    ours = triangulate(rig, uv)  # undistortion, kernel, and per-point reprojection residuals
+    dt = time.perf_counter() - t0
+    xn = normalized_observations(rig, uv)
+    Rt = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])
+    f = np.array([c.focal_px for c in rig])
+    t0 = time.perf_counter()
+    triangulate_normalized(Rt, f, xn, 1)
+    dk = time.perf_counter() - t0
+    err = float(np.sqrt(np.mean(np.sum((ours.X - X) ** 2, axis=1))))
+    return {"points": n, "ours_points_per_s": round(n / dt), "ours_rms_error_mm": round(err, 5),
+            "ours_kernel_points_per_s": round(n / dk),
+            "kernel_throughput_ratio": round(n / dk / peer["points_per_s"], 1),
+            "aniposelib_points_per_s": round(peer["points_per_s"]),
+            "aniposelib_rms_error_mm": round(peer["rms_error_mm"], 5),
+            "throughput_ratio": round(n / dt / peer["points_per_s"], 1)}
 
 
 def stage_reconstruct() -> dict:
@@ -158,7 +211,8 @@ def stage_run() -> dict:
 
 
 STAGES = {"simulate": stage_simulate, "calibrate": stage_calibrate,
-          "triangulate": stage_triangulate, "reconstruct": stage_reconstruct, "run": stage_run}
+          "triangulate": stage_triangulate, "peer": stage_peer, "reconstruct": stage_reconstruct,
+          "run": stage_run}
 
 
 def run_stage(name: str) -> dict:
