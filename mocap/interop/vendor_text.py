@@ -48,15 +48,40 @@ def _lines(path: Path) -> list[str]:
 
 
 def _numeric_block(path: Path, rows: list[str], first_line: int, sep: str, width: int) -> np.ndarray:
-    """Parse data rows into floats (n_rows, width); blank -> NaN; errors name the line."""
+    """Parse data rows into floats (n_rows, width); blank -> NaN; errors name the line.
+
+    Parsed in one pass by pandas' C reader; only when that fails is the file walked cell by cell
+    to name the offending line and column.
+    """
+    import io
+
+    import pandas as pd
+
+    if not rows:
+        return np.zeros((0, width))
+    trimmed = pd.Series(rows, dtype=object).str.rstrip(sep + " ")  # trailing empty cells
+    n_cells = trimmed.str.count(re.escape(sep)) + 1
+    wide = np.flatnonzero(n_cells.to_numpy() > width)
+    if wide.size:
+        i = int(wide[0])
+        raise ImportError_(f"{path} line {first_line + i}: {int(n_cells.iloc[i])} cells, expected {width}")
+    try:
+        table = pd.read_csv(io.StringIO("\n".join(trimmed)), sep=sep, header=None, names=range(width),
+                            dtype=float, skip_blank_lines=False, skipinitialspace=True,
+                            engine="c")
+        out = table.to_numpy(dtype=float)
+        if out.shape[0] == len(rows):
+            return out
+    except (ValueError, pd.errors.ParserError):
+        pass
+    return _numeric_block_slow(path, rows, first_line, sep, width)
+
+
+def _numeric_block_slow(path: Path, rows: list[str], first_line: int, sep: str, width: int) -> np.ndarray:
+    """Cell by cell: used only to locate what the fast parser refused."""
     out = np.full((len(rows), width), np.nan)
-    for i, row in enumerate(rows):  # text files of vendor exports are small; clarity first
-        cells = row.split(sep)
-        while cells and cells[-1] == "" and len(cells) > width:
-            cells.pop()
-        if len(cells) > width:
-            raise ImportError_(f"{path} line {first_line + i}: {len(cells)} cells, expected {width}")
-        for j, cell in enumerate(cells):
+    for i, row in enumerate(rows):
+        for j, cell in enumerate(row.rstrip(sep + " ").split(sep)[:width]):
             cell = cell.strip()
             if cell == "":
                 continue
