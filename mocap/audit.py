@@ -25,6 +25,7 @@ figures (visibility per marker and camera; noise floor per marker on the face).
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -93,8 +94,6 @@ def audit_capture(result, min_cameras: int = 3) -> dict:
     spread_bad = set(rej.loc[rej["reason"] == "abnormal_spread", "marker"])
     spreads = {}
     for avg in result.averages:
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             spreads[avg.du] = np.nanmean(avg.spread_mm, axis=0)

@@ -246,3 +246,20 @@ def test_calibrate_cli(calib_sim, tmp_path, capsys):
     assert (tmp_path / "yml" / "cam6.yml").is_file()
     captured = capsys.readouterr()
     assert "bundle adjustment" in captured.err and "excellent" in captured.out
+
+
+def test_compiled_kernel_matches_numpy_reference(calib_sim):
+    from calib.triangulation import gauss_newton, linear_triangulation, normalized_observations
+    from calib.triangulation_kernel import triangulate_normalized
+
+    rig = true_rig(calib_sim)
+    rng = np.random.default_rng(3)
+    X = rng.uniform([-40, 60, -20], [110, 220, 60], (500, 3))
+    uv = rig.project(X) + rng.normal(0, 0.08, (len(rig), 500, 2))
+    uv[rng.random((len(rig), 500)) < 0.3] = np.nan  # missing views
+    xn = normalized_observations(rig, uv)
+    Rt = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])
+    f = np.array([c.focal_px for c in rig])
+    ref = gauss_newton(Rt, xn, linear_triangulation(Rt, xn, f), f, 1)
+    fast = triangulate_normalized(Rt, f, xn, 1)
+    np.testing.assert_allclose(fast, ref, atol=1e-8, equal_nan=True)

@@ -305,7 +305,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
             write_csv(t.rows.sort_values("time_s", kind="stable"), sess / cmd_files[t.name],
                       decimals=6)
         if cfg.labeled:
-            meas = pos + master_noise(rng, pos.shape, cfg.labeled_noise_mm, jitter)
+            meas = pos + labeled_noise(rng, pos.shape, cfg.labeled_noise_mm, jitter)
             lost = rng.random(pos.shape[:2]) < 0.002
             lost[:, face.nose_bridge] |= rng.random(n_frames) < 0.1
             meas[lost] = np.nan
@@ -360,7 +360,9 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
             "rows": n_blobs_total, "seconds": time.perf_counter() - t_start}
 
 
-def master_noise(rng, shape, sd_mm, extra_mm):
+def labeled_noise(rng, shape, sd_mm, extra_mm):
+    """Measurement noise of labeled 3D takes (n_frames, n_markers, 3): sd_mm per axis, plus each
+    marker's extra shadow jitter extra_mm (n_markers,)."""
     return rng.normal(0.0, 1.0, shape) * np.sqrt(sd_mm**2 + extra_mm**2)[None, :, None]
 
 
