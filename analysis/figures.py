@@ -163,3 +163,58 @@ def audit_noise_map(path, rest_mm, noise_mm, flagged, names) -> Path:
     ax.set_ylabel("y (mm)")
     ax.set_title("Noise per marker (flagged markers circled)")
     return _save(fig, path)
+
+
+def discrepancy_localisation(path, takes, phases, ratio, title) -> Path:
+    """Held-out residual RMS / noise floor per take (rows) and command phase (columns)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(1.0 + 0.7 * len(phases), 1.2 + 0.22 * len(takes)))
+    im = ax.imshow(ratio, aspect="auto", cmap="viridis", vmin=0.0,
+                   vmax=max(3.0, float(np.nanmax(ratio)) if np.isfinite(ratio).any() else 3.0))
+    fig.colorbar(im, ax=ax, label="held-out residual RMS / noise floor")
+    ys, xs = np.nonzero(ratio > 1.5)
+    ax.scatter(xs, ys, marker="o", facecolors="none", edgecolors="r", s=30, label="> 1.5 x noise")
+    ax.set_xticks(range(len(phases)), phases, rotation=45, ha="right")
+    ax.set_yticks(range(len(takes)), takes, fontsize=7)
+    ax.set_xlabel("phase of the command")
+    ax.set_title(f"Where the model disagrees ({title})", fontsize=9)
+    if len(xs):
+        ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, path)
+
+
+def discrepancy_gap(path, stages, total_mm, per_du_mm, noise_floor_mm) -> Path:
+    """Held-out RMS after each step (total and per DU set) against the noise floor."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.0, 4.0))
+    x = np.arange(len(stages))
+    for du, vals in per_du_mm.items():
+        ax.plot(x, vals, "o-", lw=1, ms=3, alpha=0.6, label=f"DUs {du}")
+    ax.plot(x, total_mm, "ks-", lw=2.5, label="all takes")
+    ax.axhline(noise_floor_mm, color="r", ls="--", label="noise floor")
+    ax.axhline(1.5 * noise_floor_mm, color="r", ls=":", label="1.5 x noise floor")
+    ax.set_xticks(x, stages, rotation=20, ha="right")
+    ax.set_ylabel("held-out residual RMS (mm)")
+    ax.set_yscale("log")
+    ax.set_title("The gap shrinks as effects are named")
+    ax.legend(fontsize=6, ncol=2)
+    return _save(fig, path)
+
+
+def discrepancy_traces(path, panels, before, after) -> Path:
+    """Measured vs simulated displacement (along the marker's direction) before and after.
+
+    panels : list of (title, t (S,) s, measured (S,) mm, before (S,) mm, after (S,) mm).
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(len(panels), 1, figsize=(8.0, 2.4 * len(panels)), squeeze=False)
+    for ax, (title, t, meas, b, a) in zip(axes[:, 0], panels):
+        ax.plot(t, meas, "k.", ms=2, label="measured")
+        ax.plot(t, b, "C3-", lw=1.2, label=f"model {before} (held-out)")
+        ax.plot(t, a, "C0-", lw=1.2, label=f"model {after} (held-out)")
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel("displacement (mm)")
+    axes[-1, 0].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    return _save(fig, path)

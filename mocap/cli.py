@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "audit": "capture-quality audit: calibration, cameras, markers, rejections",
     "schedule": "identification battery of command files (rates, minor loops, DU pairs)",
     "design": "command files that realise a motion plan (A-E) from identified responses",
+    "discrepancy": "where the face model and the measurement disagree: name the missing effect",
 }
 
 

@@ -16,6 +16,7 @@ never reads.
 examples:
   mocap simulate out/small --preset small --seed 1
   mocap simulate out/lag --preset small --effect lag --strength 0.1
+  mocap simulate out/two --preset small --effect lag,drift       # two hidden effects at once
   mocap simulate out/paper --preset paper            # the full study, Parquet takes
   mocap simulate out/designed --preset small --commands commands.csv
 """
@@ -28,10 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="small", choices=["small", "sample", "paper"],
                    help="size of the study (default: small)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--effect", default="none", choices=sorted(EFFECTS),
-                   help="hidden effect applied to the true face (default none)")
-    p.add_argument("--strength", type=float, default=None,
-                   help="the effect's parameter (default: the effect's default strength)")
+    p.add_argument("--effect", default="none",
+                   help="hidden effect(s) applied to the true face, comma-separated, among "
+                        f"{', '.join(sorted(EFFECTS))} (default none)")
+    p.add_argument("--strength", default=None,
+                   help="the effect's parameter, one per effect, comma-separated (default: each "
+                        "effect's default strength)")
     p.add_argument("--labeled", action="store_true", help="write labeled 3D takes (no cameras)")
     p.add_argument("--format", choices=["csv", "parquet"], default=None, help="take file format")
     p.add_argument("--trials", type=int, default=None, help="response trials per DU")
@@ -50,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import sys
 
-    from mocap.simulate import HiddenEffect, preset, simulate
+    from mocap.simulate import preset, simulate
     from mocap.simulate.capture import CaptureNoise
+    from mocap.simulate.effects import make_effect
     from mocap.simulate.session_writer import print_progress
 
     out = args.out_dir
@@ -62,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         overrides = dict(
             seed=args.seed,
-            effect=HiddenEffect.default(args.effect, args.strength),
+            effect=make_effect(args.effect, args.strength),
             labeled=args.labeled or None,
             take_format=args.format,
             n_trials=args.trials,

@@ -123,24 +123,109 @@ class HiddenEffect:
         D : (n_dus, n_markers, 3) their peak vectors, mm.
         normals : (n_markers, 3) skin normals (for the sideways direction of ``curvature``).
         """
-        if self.name == "coupling" and y.shape[1] > 1:
-            mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
-            o = mag / mag.max(axis=1, keepdims=True)
-            yo = y * o[None]  # (S, N, M)
-            others = yo.sum(axis=1, keepdims=True) - yo
-            factor = 1.0 - self.strength * others
-            return np.einsum("snm,nmk->smk", y * factor, D)
-        if self.name == "curvature":
-            side = np.cross(normals[None], D)  # (N, M, 3) perpendicular, tangent
-            norm = np.linalg.norm(side, axis=-1, keepdims=True)
-            side = np.where(norm > 0, side / np.where(norm > 0, norm, 1.0), 0.0)
-            mag = np.linalg.norm(D, axis=-1, keepdims=True)
-            bow = 4.0 * self.strength * y * (1.0 - y)
-            return np.einsum("snm,nmk->smk", y, D) + np.einsum("snm,nmk->smk", bow, side * mag)
-        d = np.einsum("snm,nmk->smk", y, D)
-        if self.name == "saturation":
-            L = self.strength
-            mag = np.linalg.norm(d, axis=-1, keepdims=True)
-            scale = np.where(mag > 1e-12, L * np.tanh(mag / L) / np.where(mag > 1e-12, mag, 1.0), 1.0)
-            return d * scale
-        return d
+        return compose_displacement((self,), y, D, normals)
+
+
+def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Stage 3 of any set of effects: coupling scales y, curvature adds a bow, saturation caps.
+
+    Shapes as :meth:`HiddenEffect.displacement`. Effects absent from ``effects`` are identity.
+    """
+    by_name = {e.name: e.strength for e in effects}
+    if "coupling" in by_name and y.shape[1] > 1:
+        mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
+        o = mag / mag.max(axis=1, keepdims=True)
+        yo = y * o[None]  # (S, N, M)
+        others = yo.sum(axis=1, keepdims=True) - yo
+        y_eff = y * (1.0 - by_name["coupling"] * others)
+    else:
+        y_eff = y
+    d = np.einsum("snm,nmk->smk", y_eff, D)
+    if "curvature" in by_name:
+        side = np.cross(normals[None], D)  # (N, M, 3) perpendicular, tangent
+        norm = np.linalg.norm(side, axis=-1, keepdims=True)
+        side = np.where(norm > 0, side / np.where(norm > 0, norm, 1.0), 0.0)
+        mag = np.linalg.norm(D, axis=-1, keepdims=True)
+        bow = 4.0 * by_name["curvature"] * y * (1.0 - y)
+        d = d + np.einsum("snm,nmk->smk", bow, side * mag)
+    if "saturation" in by_name and by_name["saturation"] > 0:
+        L = by_name["saturation"]
+        mag = np.linalg.norm(d, axis=-1, keepdims=True)
+        scale = np.where(mag > 1e-12, L * np.tanh(mag / L) / np.where(mag > 1e-12, mag, 1.0), 1.0)
+        d = d * scale
+    return d
+
+
+COMMAND_ORDER = ("deadtime", "lag", "backlash")  # stage 1 order when several act at once
+
+
+@dataclass(frozen=True)
+class CombinedEffect:
+    """Several hidden effects at once, applied in stage order (the same interface as one).
+
+    Stage 1 applies dead time, then lag, then backlash; stage 2 adds the drifts; stage 3 is
+    :func:`compose_displacement`.
+    """
+
+    effects: tuple[HiddenEffect, ...]
+
+    def __post_init__(self) -> None:
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names) or "none" in names or not names:
+            raise ValueError(f"hidden effects: expected distinct effects other than none, got {names}")
+
+    @property
+    def name(self) -> str:
+        return "+".join(e.name for e in self.effects)
+
+    @property
+    def strength(self) -> float:
+        return self.effects[0].strength
+
+    def describe(self) -> dict:
+        parts = [e.describe() for e in self.effects]
+        return {"name": self.name, "parameters": {p["name"]: p["parameters"] for p in parts},
+                "effects": parts, "meaning": "; ".join(p["meaning"] for p in parts)}
+
+    def command(self, c: np.ndarray, t: np.ndarray, sampler) -> np.ndarray:
+        out = c
+        for name in COMMAND_ORDER:
+            for e in self.effects:
+                if e.name != name:
+                    continue
+                if name == "deadtime":
+                    out = sampler(t - e.strength)
+                else:
+                    out = e.command(out, t, sampler)
+        return out
+
+    def beta_shift(self, trial: int) -> float:
+        return float(sum(e.beta_shift(trial) for e in self.effects))
+
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        return compose_displacement(self.effects, y, D, normals)
+
+
+def make_effect(names, strengths=None):
+    """One :class:`HiddenEffect` or a :class:`CombinedEffect` from names and optional strengths.
+
+    ``names`` : str ("lag", "lag,drift") or sequence; ``strengths`` : None, a number, a string
+    "0.08,4" or a sequence, one per name (None entries take the default).
+    """
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    names = list(names) or ["none"]
+    if strengths is None:
+        strengths = [None] * len(names)
+    elif isinstance(strengths, str):
+        strengths = [float(v) if v.strip() else None for v in strengths.split(",")]
+    elif np.isscalar(strengths):
+        strengths = [float(strengths)]
+    strengths = list(strengths)
+    if len(strengths) != len(names):
+        raise ValueError(f"hidden effects: {len(names)} names ({','.join(names)}) but "
+                         f"{len(strengths)} strengths")
+    effects = [HiddenEffect.default(n, s) for n, s in zip(names, strengths)]
+    if len(effects) == 1:
+        return effects[0]
+    return CombinedEffect(tuple(effects))

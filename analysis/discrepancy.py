@@ -1,0 +1,609 @@
+"""The model-discrepancy workflow: find where the face model and the measurement disagree,
+name the missing effect, add it, show the gap shrink.
+
+1. Fit the current model (the paper's: PI hysteresis + logistic, :mod:`analysis.face_model`)
+   on identification takes.
+2. Predict every take and compare with the measurement; residuals per take, DU, marker and
+   phase of the command (:func:`phases`).
+3. Localise the disagreement against the measurement's own noise floor (:func:`noise_floor`,
+   from repeated trials).
+4. For each candidate effect (:data:`analysis.model_effects.CATALOGUE`) fit the extended model
+   and score it on held-out takes: two-fold cross-validation over takes (repetitions and
+   schedules alternate between folds, :func:`assign_folds`), scored by a held-out BIC,
+   ``n_eff ln(SSE_cand / SSE_cur) + dk ln(n_eff)`` with ``n_eff`` the residuals' effective
+   sample size (their lag-1 autocorrelation discounts the samples).
+5. Name the best candidate when its score beats the current model by ``margin`` (10), it
+   explains at least ``min_explained`` (20 %) of the held-out excess over the noise floor and
+   removes at least ``min_rms_gain`` (3 %) of a noise floor from the held-out RMS, its parameter
+   is physically plausible in both folds, and the session's takes can test it; else "no missing
+   effect found".
+6. Add it and repeat (forward stepwise; a named effect's parameter is re-identified on all
+   takes, with its uncertainty from the profile).
+7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
+   to the noise floor.
+
+Pure computations on :class:`analysis.model_fit.ModelData`; I/O is in :mod:`mocap.discrepancy_io`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from analysis.face_model import FaceModel, make_effects
+from analysis.model_effects import CATALOGUE, ScheduleSummary, summarize_schedules
+from analysis.model_fit import (
+    ModelData,
+    TakeData,
+    fit_curves,
+    profile_effect,
+    profile_uncertainty,
+    sse,
+    take_residual,
+)
+
+PHASES = ("rest", "hold", "rise-fast", "rise", "rise-slow", "fall-fast", "fall", "fall-slow",
+          "reversal")
+
+
+@dataclass(frozen=True)
+class DiscrepancySettings:
+    """Settings of the workflow (defaults as documented in the module docstring).
+
+    base : the starting model's effects (``("hysteresis",)`` is the paper's model; ``()`` a
+        static model without hysteresis).
+    candidates : effect names to try (default: the whole catalogue).
+    margin : held-out BIC units a candidate must gain.  min_explained : fraction of the held-out
+        excess over the noise floor it must explain.  min_rms_gain : the held-out RMS it must
+        remove, as a fraction of the noise floor (a gain nobody could see in the data is not an
+        effect, however significant statistically).  beyond_noise : ratio to the noise floor above
+        which a residual is reported as a disagreement.
+    active_mm : a DU moves a marker when the marker's 95th-percentile displacement in that DU's
+        single-DU takes exceeds this (0: every scored marker is modelled for every DU; leaving
+        out markers that move a little leaves their motion in the residual).
+    stride : frames between the samples used (3 = 40 Hz at 120 fps), at least; coarser when a
+        DU's single-DU takes hold more than ``max_samples_per_du`` samples.
+    strong_fraction : a curve gets its own sigmoid when the marker's 95th-percentile
+        displacement reaches this fraction of the DU's largest; the others take the DU's median
+        shape and only their displacement vectors are fitted.
+    max_steps : effects to add at most.
+    jobs : processes over candidates (spawned; 1 runs in this process).
+    """
+
+    base: tuple[str, ...] = ("hysteresis",)
+    candidates: tuple[str, ...] = tuple(CATALOGUE)
+    margin: float = 10.0
+    min_explained: float = 0.2
+    min_rms_gain: float = 0.03
+    beyond_noise: float = 1.5
+    active_mm: float = 0.0
+    stride: int = 3
+    max_samples_per_du: int = 1600
+    strong_fraction: float = 0.15
+    max_steps: int = 4
+    jobs: int = 1
+
+
+# ----------------------------------------------------------------------------------------------
+# data preparation
+
+
+def assign_folds(takes: list[TakeData]) -> None:
+    """Two folds: within each DU set, takes ordered by schedule then trial alternate between
+    folds (the parity flips from one DU set to the next), so each fold holds some trials of every
+    repeated schedule and about half of the other schedules."""
+    by_set: dict[tuple, list[int]] = {}
+    for i, t in enumerate(takes):
+        by_set.setdefault(t.dus, []).append(i)
+    for g, (_, idx) in enumerate(sorted(by_set.items())):
+        order = sorted(idx, key=lambda i: (takes[i].kind != "motion", takes[i].group, takes[i].trial,
+                                           takes[i].name))
+        for j, i in enumerate(order):
+            takes[i].fold = (j + g) % 2
+
+
+def trial_noise(takes: list[TakeData], markers: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Noise floor from repeated trials: what no deterministic model can predict.
+
+    For every schedule played in n >= 2 trials, each trial's deviation from the trials' fit
+    (the mean for 2 trials, a straight line over the trial number from 3, so that a drift across
+    trials is not counted as noise), scaled to unbiased (sqrt(n / (n - p))), per marker.
+
+    Returns (floor_mm, per_marker_mm (M,)): the RMS 3D deviation over all markers (or
+    ``markers``) and per marker; NaN when no schedule was repeated.
+    """
+    groups: dict[str, list[TakeData]] = {}
+    for t in takes:
+        groups.setdefault(t.group, []).append(t)
+    M = takes[0].X.shape[1]
+    ss = np.zeros(M)
+    cnt = np.zeros(M)
+    for g in groups.values():
+        n = len(g)
+        if n < 2 or len({t.n_frames for t in g}) != 1:
+            continue
+        X = np.stack([t.X for t in g])  # (n, F, M, 3)
+        tr = np.array([t.trial for t in g], float)
+        if n >= 3 and np.unique(tr).size == n:
+            A = np.column_stack([np.ones(n), tr - tr.mean()])
+            p = 2
+        else:
+            A = np.ones((n, 1))
+            p = 1
+        ok = np.isfinite(X).all(axis=(0, 3))  # (F, M) frames seen in every trial
+        Xf = np.where(ok[None, ..., None], X, 0.0)
+        coef, *_ = np.linalg.lstsq(A, Xf.reshape(n, -1), rcond=None)
+        fit = (A @ coef).reshape(X.shape)
+        dev = np.sum((Xf - fit) ** 2, axis=-1) * n / (n - p)  # (n, F, M)
+        ss += np.sum(np.where(ok[None], dev, 0.0), axis=(0, 1))
+        cnt += n * ok.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per = np.sqrt(ss / cnt)
+    sel = np.ones(M, bool) if markers is None else markers
+    sel = sel & (cnt > 0)
+    floor = float(np.sqrt(ss[sel].sum() / cnt[sel].sum())) if sel.any() else float("nan")
+    return floor, per
+
+
+def rest_noise(rest_X: np.ndarray | None) -> tuple[float, np.ndarray]:
+    """Noise floor from the rest take: RMS 3D deviation from each marker's mean (mm)."""
+    if rest_X is None or not np.isfinite(rest_X).any():
+        return float("nan"), np.full(0, np.nan)
+    with np.errstate(invalid="ignore"):
+        dev = np.sum((rest_X - np.nanmean(rest_X, axis=0)) ** 2, axis=-1)
+        per = np.sqrt(np.nanmean(dev, axis=0))
+    return float(np.sqrt(np.nanmean(dev))), per
+
+
+@dataclass
+class Prepared:
+    """A session ready for the workflow: the model data, the noise floor and what can be tested."""
+
+    data: ModelData
+    noise_floor_mm: float
+    noise_source: str
+    per_marker_noise_mm: np.ndarray
+    excluded: list[str]
+    schedules: ScheduleSummary
+
+
+def prepare(fps: float, marker_names, rest_mm: np.ndarray, takes: list[TakeData],
+            rest_X: np.ndarray | None = None,
+            settings: DiscrepancySettings = DiscrepancySettings()) -> Prepared:
+    """Folds, noise floor, moving markers per DU and the markers scored.
+
+    Markers whose trial noise is over 3 x the median marker's (a badly seen marker) are left out
+    of the scores and named in ``excluded``.
+    """
+    assign_folds(takes)
+    floor, per = trial_noise(takes)
+    source = "repeated trials"
+    if not np.isfinite(floor):
+        floor, per = rest_noise(rest_X)
+        source = "rest take"
+    M = len(marker_names)
+    used = np.ones(M, bool)
+    if per.size == M and np.isfinite(per).any():
+        med = np.nanmedian(per)
+        used = ~(per > 3.0 * med)
+        floor_used, _ = trial_noise(takes, used) if source == "repeated trials" else (floor, per)
+        if np.isfinite(floor_used):
+            floor = floor_used
+    du_ids = tuple(sorted({d for t in takes for d in t.dus}))
+    active = np.zeros((len(du_ids), M), bool)
+    strong = np.zeros((len(du_ids), M), bool)
+    n_frames = 0
+    for n, du in enumerate(du_ids):
+        ds = [np.linalg.norm(t.X - rest_mm, axis=-1) for t in takes if t.dus == (du,)]
+        if not ds:
+            continue
+        n_frames = max(n_frames, sum(d.shape[0] for d in ds))
+        with np.errstate(invalid="ignore"):
+            p95 = np.nanpercentile(np.concatenate(ds), 95, axis=0)
+        active[n] = (p95 > settings.active_mm) & used
+        peak = np.nanmax(np.where(active[n], p95, np.nan)) if active[n].any() else 0.0
+        strong[n] = active[n] & (p95 >= settings.strong_fraction * peak)
+    # samples per DU bounded: a long study is read at a coarser stride
+    stride = max(settings.stride, int(np.ceil(n_frames / settings.max_samples_per_du)))
+    data = ModelData(fps=fps, marker_names=tuple(marker_names), rest_mm=rest_mm, takes=takes,
+                     du_ids=du_ids, used=used, active=active, strong=strong, stride=stride)
+    summary = summarize_schedules([(t.rows, t.trial, t.group) for t in takes], fps)
+    excluded = [str(marker_names[i]) for i in np.flatnonzero(~used)]
+    return Prepared(data, floor, source, per, excluded, summary)
+
+
+# ----------------------------------------------------------------------------------------------
+# phases of the command
+
+
+def phases(t: TakeData, frames: np.ndarray, fps: float, window_s: float = 0.1,
+           reversal_s: float = 0.3) -> np.ndarray:
+    """Phase label index (into :data:`PHASES`) of each frame of a take, from its commands.
+
+    rise / fall by the change of the most-changing DU over the last ``window_s``: fast above
+    400 command units/s, slow below 150 (the paper's ramp is 255 per second); ``reversal``
+    for ``reversal_s`` after a DU's command turns back inside its range; ``hold`` when nothing
+    changes, ``rest`` when every command is 0.
+    """
+    from mocap.schedules import sample_commands
+
+    times = frames / fps
+    c = sample_commands(t.rows, list(t.dus), times)
+    c_prev = sample_commands(t.rows, list(t.dus), times - window_s)
+    dc = c - c_prev
+    j = np.argmax(np.abs(dc), axis=1)
+    d = dc[np.arange(len(times)), j]
+    rate = np.abs(d) / window_s
+    out = np.full(len(times), PHASES.index("hold"))
+    out[(c == 0).all(axis=1) & (d == 0)] = PHASES.index("rest")
+    for sign, name in ((1, "rise"), (-1, "fall")):
+        m = np.sign(d) == sign
+        out[m & (rate > 400)] = PHASES.index(f"{name}-fast")
+        out[m & (rate <= 400) & (rate >= 150)] = PHASES.index(name)
+        out[m & (rate < 150)] = PHASES.index(f"{name}-slow")
+    # reversals inside the range, from each DU's command rows
+    for du in t.dus:
+        g = t.rows[t.rows["du"] == du].sort_values("time_s")
+        cc = g["command"].to_numpy(float)
+        tt = g["time_s"].to_numpy(float)
+        dcc = np.diff(cc)
+        mv = np.flatnonzero(dcc != 0)
+        if mv.size < 2:
+            continue
+        s = np.sign(dcc[mv])
+        turns = mv[1:][s[1:] != s[:-1]]
+        for k in turns:
+            level = cc[k]
+            if 0.05 * 255 < level < 0.95 * 255:
+                t0 = tt[k + 1] if k + 1 < tt.size else tt[k]
+                out[(times >= t0) & (times < t0 + reversal_s)] = PHASES.index("reversal")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# cross-validated fits
+
+
+@dataclass
+class CVFit:
+    """Two fold models (each fitted on its fold, scored on the other) and held-out scores."""
+
+    models: list[FaceModel]
+    sse: float  # held-out sum of squares, mm^2 (used markers)
+    n: int  # held-out residual scalars
+    values: list[float] = field(default_factory=list)  # the effect's global parameter per fold
+
+    @property
+    def rms_mm(self) -> float:
+        """RMS of the 3D residual vectors (mm)."""
+        return float(np.sqrt(3.0 * self.sse / max(self.n, 1)))
+
+
+def fold_takes(data: ModelData, f: int) -> list[int]:
+    return [k for k, t in enumerate(data.takes) if t.fold == f]
+
+
+def heldout(data: ModelData, models: list[FaceModel]) -> tuple[float, int, list[np.ndarray]]:
+    """Held-out SSE (mm^2), scalar count and residuals (per take, (S, M, 3)) of fold models."""
+    total, count, res = 0.0, 0, []
+    for k, t in enumerate(data.takes):
+        e = take_residual(data, models[1 - t.fold], k)
+        res.append(e)
+        u = e[:, data.used]
+        ok = np.isfinite(u)
+        total += float(np.sum(u[ok] ** 2))
+        count += int(ok.sum())
+    return total, count, res
+
+
+def fold_sse(data: ModelData, model: FaceModel, fold: int) -> float:
+    """SSE (mm^2) of ``model`` on the takes of ``fold``."""
+    return sse(data, model, fold_takes(data, fold))[0]
+
+
+def effective_n(residuals: list[np.ndarray], used: np.ndarray) -> float:
+    """Effective number of independent residual scalars: n (1 - rho) / (1 + rho), rho the lag-1
+    autocorrelation of the residual series (per take, marker, axis), pooled."""
+    num = den = 0.0
+    n = 0
+    for e in residuals:
+        u = e[:, used]
+        u = u - np.nanmean(u, axis=0, keepdims=True)
+        a, b = u[1:], u[:-1]
+        ok = np.isfinite(a) & np.isfinite(b)
+        num += float(np.sum(np.where(ok, a * b, 0.0)))
+        den += float(np.sum(np.where(np.isfinite(u), u * u, 0.0)))
+        n += int(np.isfinite(u).sum())
+    rho = float(np.clip(num / den, 0.0, 0.999)) if den > 0 else 0.0
+    return max(n * (1.0 - rho) / (1.0 + rho), 1.0)
+
+
+def n_parameters(model: FaceModel, effect_name: str) -> int:
+    """Parameters an effect adds: 1 for a global value, else per active curve."""
+    cls = CATALOGUE[effect_name]
+    if not cls.per_curve:
+        return 1
+    per = (1 if cls.frees_r else 0) + 3 * cls.n_bases
+    return int(model.active.sum()) * max(per, 1)
+
+
+def cv_base(data: ModelData, effects) -> CVFit:
+    models = [fit_curves(data, effects, fold_takes(data, f)) for f in (0, 1)]
+    s, n, _ = heldout(data, models)
+    return CVFit(models, s, n)
+
+
+def cv_candidate(data: ModelData, current: CVFit, name: str) -> CVFit | None:
+    """The candidate fitted on each fold and scored on the other; None when the fit on fold 0
+    does not lower the held-out SSE of fold 1 at all (screened out: not fitted on fold 1)."""
+    cls = CATALOGUE[name]
+    models, values = [], []
+    for f in (0, 1):
+        prof = profile_effect(data, current.models[f], cls(), fold_takes(data, f))
+        models.append(prof.model)
+        values.append(prof.model.parameters()[cls.parameter] if cls.per_curve else prof.best)
+        if f == 0 and fold_sse(data, prof.model, 1) >= fold_sse(data, current.models[0], 1):
+            return None
+    s, n, _ = heldout(data, models)
+    return CVFit(models, s, n, values)
+
+
+_WORKER_DATA: ModelData | None = None
+
+
+def _init_worker(data: ModelData) -> None:
+    global _WORKER_DATA
+    _WORKER_DATA = data
+    import numba
+
+    numba.set_num_threads(1)  # one process per core: no nested numba threads
+
+
+def _candidate_task(current: CVFit, name: str):
+    t0 = time.perf_counter()
+    return name, cv_candidate(_WORKER_DATA, current, name), time.perf_counter() - t0
+
+
+class _Runner:
+    """Runs candidate fits in this process or in a pool of spawned processes."""
+
+    def __init__(self, data: ModelData, jobs: int):
+        self.data = data
+        self.pool = None
+        if jobs > 1:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
+                                            initializer=_init_worker, initargs=(data,))
+
+    def map(self, current: CVFit, names: list[str]):
+        if self.pool is None:
+            for name in names:
+                t0 = time.perf_counter()
+                yield name, cv_candidate(self.data, current, name), time.perf_counter() - t0
+        else:
+            # the slowest candidates first (they profile the actuator)
+            slow = {"deadtime": 0, "lag": 1, "backlash": 2}
+            order = sorted(names, key=lambda n: slow.get(n, 9))
+            futures = {n: self.pool.submit(_candidate_task, current, n) for n in order}
+            for name in names:
+                yield futures[name].result()
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.shutdown()
+
+
+# ----------------------------------------------------------------------------------------------
+# the workflow
+
+
+@dataclass
+class Step:
+    """One named effect: parameters (all takes), uncertainty, held-out gap before/after."""
+
+    effect: str
+    parameters: dict
+    uncertainty: dict
+    heldout_rms_before_mm: float
+    heldout_rms_after_mm: float
+    evidence: list[dict]
+    explained: float
+
+
+@dataclass
+class DiscrepancyResult:
+    """What the workflow found (see :func:`run_discrepancy`)."""
+
+    named: list[str]
+    steps: list[Step]
+    noise_floor_mm: float
+    noise_source: str
+    base_effects: tuple[str, ...]
+    untestable: dict[str, str]
+    stages: list[dict]  # per stage (base, then after each step): held-out diagnostics
+    final_model: FaceModel
+    final_evidence: list[dict]
+    excluded_markers: list[str]
+    heldout_residuals: list[list[np.ndarray]]  # per stage, per take (S, M, 3)
+    models_by_stage: list[FaceModel]
+
+    @property
+    def final_heldout_rms_mm(self) -> float:
+        return self.stages[-1]["heldout_rms_mm"]
+
+
+def _gap_tables(data: ModelData, residuals: list[np.ndarray], floor: float) -> dict:
+    """Held-out residual RMS (mm and / noise floor) per take, DU set, marker and phase."""
+    per_take, per_set, per_phase = {}, {}, {}
+    M = len(data.marker_names)
+    m_ss = np.zeros(M)
+    m_n = np.zeros(M)
+    set_acc: dict[str, list[float]] = {}
+    ph_acc = np.zeros((len(PHASES), 2))
+    for k, (t, e) in enumerate(zip(data.takes, residuals)):
+        sq = np.sum(e ** 2, axis=-1)  # (S, M)
+        sq = np.where(data.used[None], sq, np.nan)
+        ok = np.isfinite(sq)
+        per_take[t.name] = float(np.sqrt(np.nanmean(sq))) if ok.any() else float("nan")
+        key = "+".join(str(d) for d in t.dus)
+        acc = set_acc.setdefault(key, [0.0, 0.0])
+        acc[0] += float(np.nansum(sq))
+        acc[1] += int(ok.sum())
+        m_ss += np.nansum(sq, axis=0)
+        m_n += ok.sum(axis=0)
+        ph = phases(t, data.samples(k), data.fps)
+        for p in np.unique(ph):
+            sel = ok & (ph == p)[:, None]
+            ph_acc[p, 0] += float(np.sum(np.where(sel, sq, 0.0)))
+            ph_acc[p, 1] += int(sel.sum())
+    for key, (s, n) in set_acc.items():
+        per_set[key] = float(np.sqrt(s / max(n, 1)))
+    for p, name in enumerate(PHASES):
+        if ph_acc[p, 1] > 0:
+            per_phase[name] = float(np.sqrt(ph_acc[p, 0] / ph_acc[p, 1]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_marker = np.sqrt(m_ss / m_n)
+
+    def ratio(d):
+        return {k: {"rms_mm": round(v, 5), "ratio": round(v / floor, 3) if floor > 0 else None}
+                for k, v in d.items()}
+
+    return {"takes": ratio(per_take), "dus": ratio(per_set), "phases": ratio(per_phase),
+            "markers": {str(data.marker_names[m]): {"rms_mm": round(float(per_marker[m]), 5),
+                                                    "ratio": round(float(per_marker[m] / floor), 3)}
+                        for m in range(M) if data.used[m] and np.isfinite(per_marker[m])}}
+
+
+def _stage(data, cv: CVFit, residuals, floor, label) -> dict:
+    tables = _gap_tables(data, residuals, floor)
+    return {"model": label, "heldout_rms_mm": cv.rms_mm,
+            "ratio_to_noise": cv.rms_mm / floor if floor > 0 else None, **tables}
+
+
+def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancySettings(),
+                    progress=None) -> DiscrepancyResult:
+    """The whole workflow on a prepared session (see the module docstring)."""
+    say = progress or (lambda m: None)
+    data = prep.data
+    floor = prep.noise_floor_mm
+    effects = make_effects(settings.base)
+    current = cv_base(data, effects)
+    s, n, res = heldout(data, current.models)
+    stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static")]
+    residual_sets = [res]
+    stage_models = [fit_curves(data, effects, list(range(len(data.takes))))]
+    say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
+        f"noise floor {floor:.4f} mm ({prep.noise_source})")
+    untestable = {}
+    for name in settings.candidates:
+        why = CATALOGUE[name]().untestable(prep.schedules)
+        if why:
+            untestable[name] = why
+    steps: list[Step] = []
+    named: list[str] = []
+    evidence: list[dict] = []
+    runner = _Runner(data, settings.jobs)
+    try:
+        return _steps(data, prep, settings, current, res, stages, residual_sets, stage_models,
+                      untestable, steps, named, evidence, runner, say)
+    finally:
+        runner.close()
+
+
+def _steps(data, prep, settings, current, res, stages, residual_sets, stage_models, untestable,
+           steps, named, evidence, runner, say) -> DiscrepancyResult:
+    floor = prep.noise_floor_mm
+    for _ in range(settings.max_steps):
+        have = {type(e).name for e in current.models[0].effects}
+        n_eff = effective_n(res, data.used)
+        mse_cur = 3.0 * current.sse / max(current.n, 1)
+        excess = mse_cur - floor ** 2
+        evidence = []
+        fits: dict[str, CVFit] = {}
+        todo = []
+        for name in settings.candidates:
+            if name in have:
+                continue
+            if name in untestable:
+                evidence.append({"effect": name, "testable": False, "reason": untestable[name]})
+                continue
+            todo.append(name)
+        for name, cv, t_c in runner.map(current, todo):
+            if cv is None:
+                evidence.append({"effect": name, "testable": True, "screened_out": True,
+                                 "score": 0.0, "heldout_rms_mm": current.rms_mm, "explained": 0.0,
+                                 "plausible": False,
+                                 "reason": "fitted on fold 0, no gain on held-out fold 1"})
+                say(f"  {name:<10} no held-out gain on the first fold ({t_c:.1f} s)")
+                continue
+            fits[name] = cv
+            score = n_eff * np.log(cv.sse / current.sse) + n_parameters(current.models[0], name) * np.log(n_eff)
+            mse = 3.0 * cv.sse / max(cv.n, 1)
+            explained = (mse_cur - mse) / excess if excess > 0 else 0.0
+            plausible = all(CATALOGUE[name](v).plausible() for v in (cv.values or [0.0]))
+            item = {"effect": name, "testable": True, "score": float(score),
+                    "heldout_rms_mm": cv.rms_mm, "explained": float(explained),
+                    "rms_gain_vs_noise": float((current.rms_mm - cv.rms_mm) / floor),
+                    "fold_values": [float(v) for v in cv.values], "plausible": bool(plausible)}
+            evidence.append(item)
+            say(f"  {name:<10} held-out RMS {cv.rms_mm:.4f} mm, score {score:9.1f}, "
+                f"explains {explained:5.2f} of the excess ({t_c:.1f} s)")
+        ok = [e for e in evidence if e.get("testable") and not e.get("screened_out")
+              and e["score"] < -settings.margin and e["explained"] >= settings.min_explained
+              and e["rms_gain_vs_noise"] >= settings.min_rms_gain and e["plausible"]]
+        if not ok or excess <= 0:
+            break
+        best = min(ok, key=lambda e: e["score"])
+        name = best["effect"]
+        # parameters and uncertainty from all takes
+        t_c = time.perf_counter()
+        all_takes = list(range(len(data.takes)))
+        full = stage_models[-1]
+        cls = CATALOGUE[name]
+        prof = profile_effect(data, full, cls(), all_takes)
+        model = prof.model
+        params, unc = {}, {}
+        if cls.per_curve:
+            params = {cls.parameter: model.parameters()[cls.parameter]}
+            unc = {cls.parameter: _per_curve_spread(model, name)}
+        else:
+            eff = model.effect(name)
+            v = eff.describe()["value"]
+            se = profile_uncertainty(prof, n_eff)
+            # two half-samples: |v0 - v1| / 2 estimates the full-sample standard error
+            se = float(np.nanmax([se, abs(fits[name].values[0] - fits[name].values[1]) / 2]))
+            if name == "saturation" and np.isfinite(se) and prof.best > 0:
+                se = se / prof.best ** 2  # 1/L -> L
+            params = {cls.parameter: float(v)}
+            unc = {cls.parameter: float(se)}
+        say(f"  {name} on all takes: {time.perf_counter() - t_c:.1f} s")
+        before = current.rms_mm
+        current = fits[name]
+        s, n, res = heldout(data, current.models)
+        residual_sets.append(res)
+        stage_models.append(model)
+        named.append(name)
+        stages.append(_stage(data, current, res, floor, "+".join(settings.base + tuple(named))))
+        steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"]))
+        say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")
+    return DiscrepancyResult(named=named, steps=steps, noise_floor_mm=floor,
+                             noise_source=prep.noise_source, base_effects=tuple(settings.base),
+                             untestable=untestable, stages=stages, final_model=stage_models[-1],
+                             final_evidence=evidence, excluded_markers=prep.excluded,
+                             heldout_residuals=residual_sets, models_by_stage=stage_models)
+
+
+def _per_curve_spread(model: FaceModel, name: str) -> float:
+    """Uncertainty of a per-curve effect's summary: the median's standard error over curves
+    (1.25 x the standard deviation / sqrt(n))."""
+    if name == "hysteresis":
+        v = 2.0 * model.r[model.active]
+    else:
+        magD = np.linalg.norm(model.D, axis=-1)
+        big = model.active & (magD >= 0.5 * magD.max(axis=1, keepdims=True))
+        v = (np.linalg.norm(model.B[:, :, 0], axis=-1) / np.maximum(magD, 1e-12))[big]
+    return float(1.25 * np.std(v) / np.sqrt(max(v.size, 1))) if v.size else float("nan")

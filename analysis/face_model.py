@@ -1,0 +1,214 @@
+"""The face model: every marker's 3D position for any command time series on any set of DUs.
+
+The paper's static model, with a rule for reversals, plus composable effects
+(:mod:`analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
+
+    a_n(t)   = actuator-stage effects of the command c_n(t)       (identity in the base model)
+    w_nm(t)  = PI_{r_nm}[a_n](t)       Prandtl-Ishlinskii operator: mean of plays of half-widths
+                                        r_nm * (0, 0.5, 1, 1.5, 2), from rest (r = 0 without the
+                                        ``hysteresis`` effect)
+    y_nm(t)  = (S(w) - S(0)) / (S(255) - S(0)),  S(w) = 1 / (1 + exp(-alpha_nm (w - beta_nm - s)))
+               s = sum of the effects' bias shifts for the take's trial
+    y       -> interact(y)                                   (several DUs at once)
+    d_m(t)   = sum_n y_nm D_nm + sum_k basis_k(y_nm) B_nmk    (path bases: ``curvature``)
+    x_m(t)   = rest_m + output(d_m(t))                        (``saturation``)
+
+The rule for reversals is the PI operator's: on a full sweep 0 -> 255 -> 0 the forward branch is
+the logistic of about c - r and the backward one of about c + r (the paper's forward and backward
+sigmoids, hysteresis 2 r); after a reversal inside the range the response moves at once with a
+fifth of its slope and steepens as wider plays release (Preisach minor loops).
+
+Time: commands are sampled per FORMAT.md on a grid ``OVERSAMPLE`` times finer than the frames
+(for the actuator dynamics and the plays); responses are read at the frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pandas as pd
+
+from analysis.model_effects import CATALOGUE, Effect
+from analysis.play_kernel import pi_logistic_from_table, play_table
+from mocap.schedules import sample_commands
+
+OVERSAMPLE = 4
+PLAY_FRACTIONS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+R_MAX = 48.0  # largest play width r, command units (the table holds half-widths up to 2 r)
+
+
+def normalized_logistic(w: np.ndarray, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """y = (S(w) - S(0)) / (S(255) - S(0)), S(w) = 1 / (1 + exp(-alpha (w - beta))); broadcasts."""
+    lo = 1.0 / (1.0 + np.exp(np.clip(alpha * beta, -700, 700)))
+    hi = 1.0 / (1.0 + np.exp(np.clip(-alpha * (255.0 - beta), -700, 700)))
+    s = 1.0 / (1.0 + np.exp(np.clip(-alpha * (w - beta), -700, 700)))
+    return (s - lo) / np.maximum(hi - lo, 1e-12)
+
+
+def actuator_effects(effects) -> list[Effect]:
+    return sorted((e for e in effects if type(e).stage == "actuator"), key=lambda e: type(e).order)
+
+
+def actuator_series(rows: pd.DataFrame, dus, n_frames: int, fps: float, effects) -> np.ndarray:
+    """Actuator input (n_frames * OVERSAMPLE, n_dus) of a take, command units, fine grid."""
+    t = np.arange(n_frames * OVERSAMPLE) / (fps * OVERSAMPLE)
+
+    def sampler(times):
+        return sample_commands(rows, list(dus), times)
+
+    a = sampler(t)
+    for e in actuator_effects(effects):
+        a = e.actuator(a, t, sampler)
+    return a
+
+
+def take_tables(rows: pd.DataFrame, dus, n_frames: int, fps: float, effects,
+                stride: int = 1) -> list[np.ndarray]:
+    """Play tables, one (ceil(n_frames / stride), H) array per DU of ``dus``, frames 0, stride, ..."""
+    a = actuator_series(rows, dus, n_frames, fps, effects)
+    return [play_table(a[:, j], keep_every=OVERSAMPLE * stride) for j in range(a.shape[1])]
+
+
+@dataclass
+class FaceModel:
+    """An identified face model (plain arrays; see the module docstring for the equations).
+
+    Attributes
+    ----------
+    fps : frame rate the model predicts at, frames/s.
+    marker_names : (M,) names.  rest_mm : (M, 3) rest positions, mm.
+    du_ids : (N,) DU ids.
+    active : (N, M) bool, the markers each DU moves (others get no displacement from it).
+    alpha : (N, M) 1/command unit.  beta : (N, M) command units.  r : (N, M) play width,
+        command units (0 without hysteresis).
+    D : (N, M, 3) mm, the displacement at full response.
+    B : (N, M, K, 3) mm, the path-basis vectors (K = total extra bases of the effects).
+    effects : the model's effects (the base model of the paper has ``hysteresis`` only).
+    """
+
+    fps: float
+    marker_names: tuple[str, ...]
+    rest_mm: np.ndarray
+    du_ids: tuple[int, ...]
+    active: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    r: np.ndarray
+    D: np.ndarray
+    B: np.ndarray
+    effects: tuple[Effect, ...] = ()
+    info: dict = field(default_factory=dict)
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [type(e).name for e in self.effects]
+
+    def effect(self, name: str) -> Effect | None:
+        for e in self.effects:
+            if type(e).name == name:
+                return e
+        return None
+
+    @property
+    def hysteresis(self) -> bool:
+        return any(type(e).frees_r for e in self.effects)
+
+    def with_effects(self, effects) -> "FaceModel":
+        return replace(self, effects=tuple(effects))
+
+    # -- prediction ---------------------------------------------------------------------------
+    def bias_shift(self, trial) -> np.ndarray | float:
+        return sum((e.beta_shift(trial) for e in self.effects), 0.0)
+
+    def response(self, tables: list[np.ndarray], dus, trial) -> np.ndarray:
+        """Normalised responses y (S, n_take_dus, M) from the take's play tables."""
+        S = tables[0].shape[0] if tables else 0
+        y = np.zeros((S, len(dus), len(self.marker_names)))
+        shift = np.broadcast_to(np.asarray(self.bias_shift(trial), float), (S,))
+        for j, du in enumerate(dus):
+            if du not in self.du_ids:
+                continue
+            n = self.du_ids.index(du)
+            act = np.flatnonzero(self.active[n])
+            if act.size == 0:
+                continue
+            y[:, j, act] = pi_logistic_from_table(tables[j], self.r[n, act], self.alpha[n, act],
+                                                  self.beta[n, act], shift, PLAY_FRACTIONS)
+        return y
+
+    def displacement_from_response(self, y: np.ndarray, dus) -> np.ndarray:
+        """Displacements (S, M, 3) mm from normalised responses y (S, n_take_dus, M)."""
+        rows = [self.du_ids.index(d) if d in self.du_ids else -1 for d in dus]
+        keep = [i for i, r in enumerate(rows) if r >= 0]
+        y = y[:, keep]
+        rows = [rows[i] for i in keep]
+        M = len(self.marker_names)
+        if not rows:
+            return np.zeros((y.shape[0], M, 3))
+        D = self.D[rows]
+        y_eff = y
+        for e in self.effects:
+            y_eff = e.interact(y_eff, D)
+        d = np.einsum("snm,nmk->smk", y_eff, D)
+        k = 0
+        for e in self.effects:
+            for basis in e.bases(y):
+                d = d + np.einsum("snm,nmk->smk", basis, self.B[rows, :, k])
+                k += 1
+        for e in self.effects:
+            d = e.output(d)
+        return d
+
+    def predict_tables(self, tables, dus, trial) -> np.ndarray:
+        return self.displacement_from_response(self.response(tables, dus, trial), dus)
+
+    def predict(self, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
+        """Marker positions (n_frames, M, 3) mm for a command schedule (FORMAT.md rows).
+
+        DUs of ``rows`` the model does not know are ignored; a take without commands rests.
+        """
+        dus = sorted(int(d) for d in pd.unique(rows["du"])) if len(rows) else []
+        if not dus:
+            return np.broadcast_to(self.rest_mm, (n_frames, len(self.marker_names), 3)).copy()
+        tables = take_tables(rows, dus, n_frames, self.fps, self.effects)
+        return self.rest_mm + self.predict_tables(tables, dus, trial)
+
+    # -- summaries ------------------------------------------------------------------------------
+    def parameters(self) -> dict:
+        """Each effect's main parameter (median over curves for per-curve effects)."""
+        out = {}
+        for e in self.effects:
+            cls = type(e)
+            if cls.name == "hysteresis":
+                out[cls.parameter] = float(np.median(2.0 * self.r[self.active]))
+            elif cls.name == "curvature":
+                out[cls.parameter] = bow_ratio(self)
+            else:
+                out[cls.parameter] = float(e.describe()["value"])
+        return out
+
+
+def bow_ratio(model: FaceModel) -> float:
+    """Median over active curves of |B| / |D| (the mid-range bow per unit displacement),
+    weighted towards well-measured curves (|D| >= half the DU's largest)."""
+    if model.B.shape[2] == 0:
+        return 0.0
+    magD = np.linalg.norm(model.D, axis=-1)
+    big = model.active & (magD >= 0.5 * magD.max(axis=1, keepdims=True))
+    ratio = np.linalg.norm(model.B[:, :, 0], axis=-1) / np.maximum(magD, 1e-12)
+    return float(np.median(ratio[big])) if big.any() else 0.0
+
+
+def make_effects(names) -> tuple[Effect, ...]:
+    """Effects by name (default parameter values 0), e.g. ``make_effects(["hysteresis"])``."""
+    out = []
+    for n in names:
+        if n not in CATALOGUE:
+            raise ValueError(f"face model: unknown effect {n!r} (known: {', '.join(CATALOGUE)})")
+        out.append(CATALOGUE[n]())
+    return tuple(out)
+
+
+def n_bases(effects) -> int:
+    return int(sum(type(e).n_bases for e in effects))

@@ -1,0 +1,147 @@
+"""Compiled (numba) play-operator tables: the output of many play operators of different
+half-widths on one input series, in one pass.
+
+A Prandtl-Ishlinskii response of any width ``r`` is then a weighted sum of table columns
+(:func:`pi_weights`): fitting a width per marker needs no play loop at all (the table is computed
+once per actuator series), which is what makes the face model's identification fast.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+H_STEP = 0.5  # command units between table columns
+H_MAX = 100.0  # largest half-width in the table (PI widths r <= H_MAX / 2)
+HALFWIDTHS = np.arange(0.0, H_MAX + 1e-9, H_STEP)  # (H,)
+
+
+@njit(cache=True)
+def _play_table(a, h, keep_every, out):
+    T = a.shape[0]
+    H = h.shape[0]
+    for j in range(H):
+        y = 0.0
+        hj = h[j]
+        k_out = 0
+        for k in range(T):
+            lo = a[k] - hj
+            hi = a[k] + hj
+            if y < lo:
+                y = lo
+            elif y > hi:
+                y = hi
+            if k % keep_every == 0:
+                out[k_out, j] = y
+                k_out += 1
+
+
+def play_table(a: np.ndarray, keep_every: int = 1, halfwidths: np.ndarray = HALFWIDTHS) -> np.ndarray:
+    """Outputs of plays of every half-width on ``a``, from rest (initial output 0).
+
+    Parameters
+    ----------
+    a : (T,) input series (command units), in time order.
+    keep_every : keep every k-th sample of the output (the plays run on every input sample).
+    halfwidths : (H,) play half-widths, command units.
+
+    Returns
+    -------
+    (ceil(T / keep_every), H) float64 outputs, command units.
+    """
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    h = np.ascontiguousarray(halfwidths, dtype=np.float64)
+    n_out = (a.shape[0] + keep_every - 1) // keep_every
+    out = np.empty((n_out, h.shape[0]))
+    _play_table(a, h, int(keep_every), out)
+    return out
+
+
+def pi_weights(r: np.ndarray, fractions: np.ndarray, h_step: float = H_STEP,
+               n_columns: int = HALFWIDTHS.size) -> np.ndarray:
+    """Column weights (H, n) so that ``table @ W`` is the PI operator of width ``r`` per column.
+
+    The PI operator of width r is the mean of plays of half-widths ``fractions * r``; each
+    play is interpolated linearly between the table's columns.
+
+    r : (n,) widths, command units (clipped to the table's range).
+    """
+    r = np.asarray(r, float)
+    W = np.zeros((n_columns, r.size))
+    cols = np.arange(r.size)
+    for f in np.asarray(fractions, float):
+        x = np.clip(f * r / h_step, 0.0, n_columns - 1 - 1e-9)
+        i0 = np.floor(x).astype(int)
+        lam = x - i0
+        np.add.at(W, (i0, cols), (1.0 - lam) / len(fractions))
+        np.add.at(W, (np.minimum(i0 + 1, n_columns - 1), cols), lam / len(fractions))
+    return W
+
+
+@njit(cache=True)
+def _pi_logistic(P, i0, lam, fr, h_step, alpha, beta, shift, want, y, dy):
+    S, H = P.shape
+    nf, M = i0.shape
+    for s in range(S):
+        for m in range(M):
+            w = 0.0
+            dw = 0.0
+            for f in range(nf):
+                j = i0[f, m]
+                a0 = P[s, j]
+                a1 = P[s, j + 1] if j + 1 < H else a0
+                w += a0 + lam[f, m] * (a1 - a0)
+                dw += fr[f] * (a1 - a0) / h_step
+            w /= nf
+            dw /= nf
+            al = alpha[m]
+            b = beta[m] + shift[s]
+            zs = -al * (w - b)
+            zl = al * b
+            zh = -al * (255.0 - b)
+            sg = 1.0 / (1.0 + np.exp(min(max(zs, -700.0), 700.0)))
+            lo = 1.0 / (1.0 + np.exp(min(max(zl, -700.0), 700.0)))
+            hi = 1.0 / (1.0 + np.exp(min(max(zh, -700.0), 700.0)))
+            span = max(hi - lo, 1e-12)
+            yy = (sg - lo) / span
+            y[s, m] = yy
+            if want:
+                ss = sg * (1.0 - sg)
+                ll = lo * (1.0 - lo)
+                hh = hi * (1.0 - hi)
+                ds_a = ss * (w - b)
+                ds_b = -al * ss
+                dl_a = ll * (-b)
+                dl_b = -al * ll
+                dh_a = hh * (255.0 - b)
+                dh_b = -al * hh
+                dy[s, m, 0] = (ds_a - dl_a) / span - yy / span * (dh_a - dl_a)
+                dy[s, m, 1] = (ds_b - dl_b) / span - yy / span * (dh_b - dl_b)
+                dy[s, m, 2] = al * ss / span * dw
+
+
+def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta: np.ndarray,
+                           shift: np.ndarray | None = None, fractions=None,
+                           derivatives: bool = False):
+    """Normalised logistic of the PI operator of width r, read from a play table.
+
+    P : (S, H) play table (:func:`play_table`).  r, alpha, beta : (M,) per curve (command units,
+    1/command unit, command units).  shift : (S,) bias shift per sample (command units) or None.
+    fractions : play half-widths / r (default the model's 0, .5, 1, 1.5, 2).
+
+    Returns y (S, M) and, with ``derivatives``, dy/d(alpha, beta, r) (S, M, 3).
+    """
+    fr = np.asarray((0.0, 0.5, 1.0, 1.5, 2.0) if fractions is None else fractions, float)
+    r = np.asarray(r, float)
+    H = P.shape[1]
+    x = np.clip(fr[:, None] * r[None, :] / H_STEP, 0.0, H - 1 - 1e-9)
+    i0 = np.floor(x).astype(np.int64)
+    lam = x - i0
+    S, M = P.shape[0], r.size
+    y = np.empty((S, M))
+    dy = np.empty((S, M, 3)) if derivatives else np.empty((1, 1, 3))
+    sh = np.zeros(S) if shift is None else np.ascontiguousarray(np.broadcast_to(shift, (S,)), float)
+    _pi_logistic(np.ascontiguousarray(P, float), i0, lam, fr, H_STEP,
+                 np.ascontiguousarray(alpha, float), np.ascontiguousarray(beta, float), sh,
+                 derivatives, y, dy)
+    return (y, dy) if derivatives else y

@@ -1,0 +1,234 @@
+"""`mocap discrepancy`: run the workflow of :mod:`analysis.discrepancy` on a session or a run's
+output and write ``discrepancy.json``, ``discrepancy.md``, ``figures/`` and ``discrepancy.rrd``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from analysis.discrepancy import (
+    PHASES,
+    DiscrepancyResult,
+    DiscrepancySettings,
+    Prepared,
+    prepare,
+    run_discrepancy,
+)
+from analysis.model_effects import CATALOGUE
+from mocap.atomic import write_text
+from mocap.discrepancy_input import load_measured
+
+
+def _r(x, nd=5):
+    return None if x is None or not np.isfinite(x) else round(float(x), nd)
+
+
+def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
+    """discrepancy.json (OUTPUTS.md, plus the localisation and per-DU/marker gaps per stage)."""
+    floor = res.noise_floor_mm
+
+    def evidence(items):
+        return [{k: (_r(v) if isinstance(v, float) else v) for k, v in e.items()} for e in items]
+
+    steps = []
+    for i, s in enumerate(res.steps):
+        before, after = res.stages[i], res.stages[i + 1]
+        steps.append({
+            "effect": s.effect,
+            "meaning": CATALOGUE[s.effect].meaning,
+            "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
+            "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
+            "heldout_rms_before_mm": _r(s.heldout_rms_before_mm),
+            "heldout_rms_after_mm": _r(s.heldout_rms_after_mm),
+            "noise_floor_mm": _r(floor),
+            "gap_shrink": _r(1.0 - _excess(s.heldout_rms_after_mm, floor)
+                             / max(_excess(s.heldout_rms_before_mm, floor), 1e-12), 4),
+            "explained_excess": _r(s.explained, 4),
+            "per_du_before": before["dus"], "per_du_after": after["dus"],
+            "per_marker_before": before["markers"], "per_marker_after": after["markers"],
+            "evidence": evidence(s.evidence),
+        })
+    return {
+        "named": list(res.named),
+        "conclusion": (f"named {', '.join(res.named)}" if res.named else "no missing effect found"),
+        "steps": steps,
+        "final_heldout_rms_mm": _r(res.final_heldout_rms_mm),
+        "noise_floor_mm": _r(floor),
+        "noise_floor_source": res.noise_source,
+        "final_ratio_to_noise": _r(res.final_heldout_rms_mm / floor, 3) if floor > 0 else None,
+        "base_model": list(res.base_effects) or ["static"],
+        "final_model": {"effects": res.final_model.effect_names,
+                        "parameters": {k: _r(v, 6) for k, v in res.final_model.parameters().items()}},
+        "untestable": res.untestable,
+        "final_evidence": evidence(res.final_evidence) if not res.steps or
+        res.final_evidence is not res.steps[-1].evidence else [],
+        "excluded_markers": res.excluded_markers,
+        "localisation": [{k: v for k, v in st.items()} for st in res.stages],
+        "schedules": prep.schedules.__dict__,
+        "takes": [{"name": t.name, "dus": list(t.dus), "trial": t.trial, "fold": t.fold}
+                  for t in prep.data.takes],
+        **meta,
+    }
+
+
+def _excess(rms: float, floor: float) -> float:
+    """The part of a held-out RMS above the noise floor: sqrt(max(rms^2 - floor^2, 0)) (mm)."""
+    return float(np.sqrt(max(rms ** 2 - floor ** 2, 0.0)))
+
+
+def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta: dict) -> str:
+    floor = res.noise_floor_mm
+    L = ["# Model discrepancy", ""]
+    L.append(f"Input: {meta['source']}. {len(prep.data.takes)} commanded takes in two folds "
+             f"(each scored by the model fitted on the other fold); {int(prep.data.used.sum())} "
+             f"markers scored" + (f", left out (abnormal noise): {', '.join(prep.excluded)}"
+                                  if prep.excluded else "") + ".")
+    L.append(f"Noise floor: **{floor:.4f} mm** (RMS 3D deviation of a trial from the "
+             f"{'trials' if res.noise_source == 'repeated trials' else 'rest take'}; "
+             f"source: {res.noise_source}). A residual above {1.5:.1f} x the floor is a "
+             "disagreement.")
+    L.append("")
+    L.append(f"**Conclusion: {'named ' + ', '.join(res.named) if res.named else 'no missing effect found'}.**"
+             f" Held-out RMS {res.stages[0]['heldout_rms_mm']:.4f} mm "
+             f"({res.stages[0]['heldout_rms_mm'] / floor:.2f} x noise) with the base model "
+             f"({', '.join(res.base_effects) or 'static, no hysteresis'}) -> "
+             f"{res.final_heldout_rms_mm:.4f} mm ({res.final_heldout_rms_mm / floor:.2f} x noise).")
+    if res.untestable:
+        L += ["", "Effects these takes cannot tell apart (not named, whatever the residuals):"]
+        L += [f"- {k}: not testable, {v}" for k, v in res.untestable.items()]
+    for i, st in enumerate(res.stages):
+        L += ["", f"## Stage {i}: model {st['model']}", "",
+              f"Held-out RMS {st['heldout_rms_mm']:.4f} mm = {st['ratio_to_noise']:.2f} x noise.", ""]
+        L += ["| phase | RMS (mm) | / noise |", "|---|---|---|"]
+        for ph in PHASES:
+            if ph in st["phases"]:
+                v = st["phases"][ph]
+                flag = " **beyond noise**" if v["ratio"] and v["ratio"] > 1.5 else ""
+                L.append(f"| {ph} | {v['rms_mm']:.4f} | {v['ratio']:.2f}{flag} |")
+        L += ["", "| DUs | RMS (mm) | / noise |", "|---|---|---|"]
+        for k, v in st["dus"].items():
+            L.append(f"| {k} | {v['rms_mm']:.4f} | {v['ratio']:.2f} |")
+        worst = sorted(st["takes"].items(), key=lambda kv: -(kv[1]["rms_mm"] or 0))[:5]
+        L += ["", "Largest gaps: " + ", ".join(f"{k} ({v['ratio']:.2f} x)" for k, v in worst) + "."]
+        if i < len(res.steps):
+            s = res.steps[i]
+            L += ["", f"### Candidates after stage {i}", "",
+                  "| effect | held-out RMS (mm) | score (BIC units, < -10 to name) | explains | "
+                  "fold estimates | |", "|---|---|---|---|---|---|"]
+            for e in s.evidence:
+                L.append(_evidence_row(e))
+            unit = CATALOGUE[s.effect].unit
+            L += ["", f"**Named: {s.effect}** ({CATALOGUE[s.effect].meaning}): " + ", ".join(
+                f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
+                for k, v in s.parameters.items()) +
+                f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
+    if not res.steps or res.final_evidence is not res.steps[-1].evidence:
+        L += ["", "## Last candidates (none named)", "",
+              "| effect | held-out RMS (mm) | score | explains | fold estimates | |",
+              "|---|---|---|---|---|---|"]
+        L += [_evidence_row(e) for e in res.final_evidence]
+    if figures:
+        L += ["", "## Figures", ""]
+        L += [f"![{k}]({v})" for k, v in figures.items()]
+    L += ["", "Method: two-fold cross-validation over takes; score = n_eff ln(SSE_cand / SSE_cur) + "
+          "k ln(n_eff) on held-out takes (n_eff: the residuals' effective sample size); an effect is "
+          "named when its score is below -10, it explains at least 20 % of the held-out excess over "
+          "the noise floor and removes at least 3 % of a noise floor from the held-out RMS, its "
+          "parameter is plausible in both folds and the takes can test it."]
+    return "\n".join(L) + "\n"
+
+
+def _evidence_row(e: dict) -> str:
+    if not e.get("testable", True):
+        return f"| {e['effect']} | | | | | not testable: {e.get('reason', '')} |"
+    if e.get("screened_out"):
+        return f"| {e['effect']} | | | | | no held-out gain on the first fold |"
+    fv = ", ".join(f"{v:.4g}" for v in e.get("fold_values", []))
+    note = "" if e.get("plausible", True) else "implausible value"
+    return (f"| {e['effect']} | {e['heldout_rms_mm']:.4f} | {e['score']:.1f} | "
+            f"{e['explained']:.2f} | {fv} | {note} |")
+
+
+def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict:
+    from analysis import figures as F
+
+    out = {}
+    data = prep.data
+    floor = res.noise_floor_mm
+    takes = [t.name for t in data.takes]
+    for i, st in enumerate(res.stages):
+        grid = np.full((len(takes), len(PHASES)), np.nan)
+        # per take and phase ratios
+        from analysis.discrepancy import phases
+
+        for k, (t, e) in enumerate(zip(data.takes, res.heldout_residuals[i])):
+            sq = np.where(data.used[None], np.sum(e ** 2, axis=-1), np.nan)
+            ph = phases(t, data.samples(k), data.fps)
+            for p in np.unique(ph):
+                v = sq[ph == p]
+                if np.isfinite(v).any():
+                    grid[k, p] = np.sqrt(np.nanmean(v)) / floor
+        p = fig_dir / f"discrepancy_localisation_stage{i}.png"
+        F.discrepancy_localisation(p, takes, list(PHASES), grid, f"stage {i}: {st['model']}")
+        out[f"localisation, stage {i}"] = f"figures/{p.name}"
+    p = fig_dir / "discrepancy_gap.png"
+    F.discrepancy_gap(p, [st["model"] for st in res.stages], [st["heldout_rms_mm"] for st in res.stages],
+                      {du: [st["dus"].get(du, {}).get("rms_mm", np.nan) for st in res.stages]
+                       for du in res.stages[0]["dus"]}, floor)
+    out["gap per step"] = f"figures/{p.name}"
+    # measured against simulated, before and after each step, on the takes where the gap was largest
+    for i in range(len(res.steps)):
+        gaps = res.stages[i]["takes"]
+        worst = sorted(gaps, key=lambda k: -(gaps[k]["rms_mm"] or 0))[:3]
+        panels = []
+        for name in worst:
+            k = takes.index(name)
+            t = data.takes[k]
+            obs = data.observed(k)
+            e0, e1 = res.heldout_residuals[i][k], res.heldout_residuals[i + 1][k]
+            sq = np.nansum(np.where(data.used[None, :, None], e0 ** 2, 0).sum(-1), axis=0)
+            m = int(np.argmax(sq))
+            n = data.du_ids.index(t.dus[0])
+            u = res.final_model.D[n, m]
+            u = u / max(np.linalg.norm(u), 1e-12)
+            tt = data.samples(k) / data.fps
+            panels.append((f"{name}, marker {data.marker_names[m]}", tt, obs[:, m] @ u,
+                           (obs[:, m] - e0[:, m]) @ u, (obs[:, m] - e1[:, m]) @ u))
+        p = fig_dir / f"discrepancy_traces_step{i + 1}_{res.steps[i].effect}.png"
+        F.discrepancy_traces(p, panels, res.stages[i]["model"], res.stages[i + 1]["model"])
+        out[f"measured vs simulated, step {i + 1} ({res.steps[i].effect})"] = f"figures/{p.name}"
+    return out
+
+
+def run(path, out_dir, settings: DiscrepancySettings = DiscrepancySettings(),
+        progress=None, recording: bool = True) -> DiscrepancyResult:
+    """The workflow end to end on ``path`` (session or mocap run output), outputs in ``out_dir``."""
+    say = progress or (lambda m: None)
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ms = load_measured(path, work_dir=out / "reconstruction", progress=say)
+    t_load = time.perf_counter() - t0
+    say(f"{len(ms.takes)} commanded takes, {len(ms.marker_names)} markers ({ms.source})")
+    prep = prepare(ms.session.fps, ms.marker_names, ms.rest_mm, ms.takes, ms.rest_X, settings)
+    res = run_discrepancy(prep, settings, progress=say)
+    t_fit = time.perf_counter() - t0 - t_load
+    figures = write_figures(res, prep, out / "figures")
+    meta = {"source": ms.source, "session": ms.session.name,
+            "settings": {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in settings.__dict__.items()},
+            "timings_s": {"load": round(t_load, 2), "workflow": round(t_fit, 2)}}
+    if recording:
+        from mocap.recording import write_discrepancy_recording
+
+        t = time.perf_counter()
+        write_discrepancy_recording(out / "discrepancy.rrd", res, prep.data, ms.session.name)
+        meta["timings_s"]["recording"] = round(time.perf_counter() - t, 2)
+    meta["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
+    write_text(out / "discrepancy.json", json.dumps(result_json(res, prep, meta), indent=2) + "\n")
+    write_text(out / "discrepancy.md", result_markdown(res, prep, figures, meta))
+    return res
