@@ -83,6 +83,7 @@ class ModelData:
     stride: int = 2
     _tables: dict = field(default_factory=dict, repr=False)
     _obs: dict = field(default_factory=dict, repr=False)
+    _blocks: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if self.strong is None:
@@ -131,8 +132,8 @@ def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray) -> _Bl
     if not ks:
         return None
     outs = tuple((type(e).name, float(e.value)) for e in effects if type(e).stage == "output")
-    key = ("obs", du, tuple(ks), outs, markers.tobytes())
-    if key not in data._obs:
+    key = (du, tuple(ks), outs, markers.tobytes())
+    if key not in data._blocks:
         V, W = [], []
         for k in ks:
             d = data.observed(k)[:, markers]
@@ -145,10 +146,10 @@ def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray) -> _Bl
                     wt = wt * w_e
             V.append(d)
             W.append(wt)
-        data._obs = {k: v for k, v in data._obs.items() if not (isinstance(k, tuple) and k[1] == du
-                                                               and k[3] != outs)}
-        data._obs[key] = (np.concatenate(V), np.concatenate(W))
-    v, wt = data._obs[key]
+        if len(data._blocks) > 8 * len(data.du_ids):  # a few output-effect values at a time
+            data._blocks.clear()
+        data._blocks[key] = (np.concatenate(V), np.concatenate(W))
+    v, wt = data._blocks[key]
     P = np.concatenate([data.tables(k, effects)[0] for k in ks])
     shift = np.concatenate([np.full(data.observed(k).shape[0],
                                     float(np.asarray(sum((e.beta_shift(data.takes[k].trial)
