@@ -33,14 +33,22 @@ def smoothed(d: np.ndarray, frames: int) -> np.ndarray:
         return np.where(den > 0, num / den, np.nan)
 
 
-def plateau_level(x: np.ndarray, frames: int) -> np.ndarray:
-    """(M,) mean of x (n_frames, M) over each column's plateau (see the module docstring)."""
+def plateau_mask(x: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(on (n_frames, M) bool, top (M,)): each column's plateau frames (see the module docstring)
+    and its smoothed maximum. The mask is the same for x and any positive multiple of it (a
+    normalised curve has its displacement's plateau)."""
     s = smoothed(x, frames)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         top = np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=0)
         on = np.isfinite(x) & (s >= PLATEAU * top[None]) & (top[None] > 0)
-        level = np.where(on, x, 0.0).sum(axis=0) / np.maximum(on.sum(axis=0), 1)
+    return on, top
+
+
+def plateau_level(x: np.ndarray, frames: int) -> np.ndarray:
+    """(M,) mean of x (n_frames, M) over each column's plateau (see the module docstring)."""
+    on, top = plateau_mask(x, frames)
+    level = np.where(on, x, 0.0).sum(axis=0) / np.maximum(on.sum(axis=0), 1)
     return np.where(on.any(axis=0), level, top)
 
 

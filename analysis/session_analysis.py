@@ -13,10 +13,12 @@ import pandas as pd
 
 from analysis.design import PlanTiming
 from analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
-from analysis.linearity import spatial_linearity
+from analysis.displacement import plateau_mask
+from analysis.linearity import spatial_linearity, step_noise_covariance
 from analysis.plans import PLAN_NAMES
 from analysis.properties import du_properties
 
+MIN_STEP_DOF = 30  # in-take noise covariance needs this many degrees of freedom per marker
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
 
 PROPERTY_COLUMNS = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity",
@@ -36,15 +38,16 @@ class SessionAnalysis:
     motions: list = field(default_factory=list)  # (take, plan, MotionEvaluation)
 
 
-def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(white (M,), offset (M,)): noise variances of each marker's normalised curve, measured
-    on the curve itself.
+def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
+    """(M,) white-noise variance per frame of each marker's normalised curve, measured on the
+    curve itself.
 
     Where the command is held at its lowest or highest value the true response is flat, so half
     the mean squared frame-to-frame difference there is the variance of the curve's white noise
     (trial-mean measurement noise and skin jitter alike, in delta units, whatever the noise's
-    direction). The rest reference v(0), the mean of the lead-in frames, adds a per-marker offset
-    that persists through the take: its variance is the white variance over the lead length.
+    direction). How it reaches each step mean (through the rest reference and the plateau too)
+    is ``analysis.properties.step_noise_factor``'s business. Flat holds rather than every step:
+    a response still moving inside a step would count as noise there.
     """
     c = np.asarray(command)
     flat = (c == c.min()) | (c == c.max())
@@ -54,10 +57,24 @@ def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> tuple[np.nda
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        white = 0.5 * np.nanmean(diff**2, axis=0)
-    change = np.flatnonzero(np.diff(c) != 0)
-    lead = int(change[0]) + 1 if change.size else 1
-    return white, white / max(lead, 1)
+        return 0.5 * np.nanmean(diff**2, axis=0)
+
+
+def take_noise_covariance(avg, noise_mm: np.ndarray | None = None,
+                          noise_cov_mm2: np.ndarray | None = None) -> np.ndarray:
+    """(M, 3, 3) mm^2 noise covariance of each marker's positions in a response take, for the
+    noise-corrected linearity: measured within the take's command steps
+    (``analysis.linearity.step_noise_covariance``); where a marker has fewer than
+    ``MIN_STEP_DOF`` degrees of freedom there, the rest take's covariance (``noise_cov_mm2``) or
+    isotropic ``noise_mm`` ** 2 when given."""
+    cov, dof = step_noise_covariance(avg.trials, avg.command)
+    few = dof < MIN_STEP_DOF
+    if few.any():
+        if noise_cov_mm2 is not None:
+            cov[few] = np.asarray(noise_cov_mm2)[few]
+        elif noise_mm is not None:
+            cov[few] = (np.asarray(noise_mm)[few] ** 2)[:, None, None] * np.eye(3)
+    return cov
 
 
 def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
@@ -81,9 +98,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         fits and indices use only markers whose peak displacement is at least ``MIN_SNR`` times
         that noise (below it a normalised curve is mostly noise: its "peak" is a noise maximum),
         and the dyssynchrony is corrected for the remaining noise (``analysis.properties``).
-    noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest; when given, the noise
-        along each marker's direction of motion (u' C u) replaces the per-axis average
-        (triangulation noise is larger in depth than across).
+    noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the noise-corrected
+        linearity's fallback for markers with too few samples within the response takes' steps
+        (its noise covariance is measured there, ``take_noise_covariance``).
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
@@ -91,13 +108,15 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         keep = kept_markers(rejections, names, avg.du)
         pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])
         lin = spatial_linearity(pooled)
-        lin_c = spatial_linearity(pooled, noise_cov_mm2 if noise_cov_mm2 is not None else
-                                  (None if noise_mm is None else np.asarray(noise_mm) ** 2))
+        lin_c = spatial_linearity(pooled, take_noise_covariance(avg, noise_mm, noise_cov_mm2))
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
-        noise_var, offset_var = None, None
+        noise_var, plateau = None, None
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
         if noise_mm is not None:
-            noise_var, offset_var = delta_noise_variance(delta, avg.command)
+            noise_var = delta_noise_variance(delta, avg.command)
+            from mocap.reconstruct.trials import NORMALISE_S
+
+            plateau = plateau_mask(delta, max(1, int(round(NORMALISE_S * avg.fps))))[0]
         fit_keep = keep
         if noise_mm is not None:
             se = np.asarray(noise_mm) / np.sqrt(n_tr)
@@ -105,7 +124,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                                       -np.inf), axis=0)
             fit_keep = keep & (peak >= MIN_SNR * se)
         props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=n_boot,
-                              noise_var=noise_var, offset_var=offset_var)
+                              noise_var=noise_var, plateau=plateau)
         hold = avg.command == avg.command.max()
         field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)

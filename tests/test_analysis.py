@@ -66,16 +66,61 @@ def test_properties_exact_on_analytic_sigmoids():
     assert lo <= p.hysteresis <= hi
 
 
-def test_step_dyssynchrony_removes_noise():
-    from analysis.properties import dyssynchrony_steps
+def step_response(alpha, beta_f, beta_b, n_markers, beta_sd, seed=0):
+    """A static response to the paper's stepped trapezoid: constant within each command step,
+    (S(c) - S(0)) / (S(255) - S(0)) forward and backward, so 0 at rest and 1 on the plateau."""
+    t = np.arange(606) / FPS
+    c = sample_commands(trapezoid(4), [4], t)[:, 0]
+    shift = np.random.default_rng(seed).normal(0, beta_sd, n_markers)
+    b = np.where(t[:, None] < 2.5, beta_f + shift, beta_b + shift)
+    lo, hi = sigmoid(0.0, alpha, b), sigmoid(255.0, alpha, b)
+    return c, (sigmoid(c[:, None], alpha, b) - lo) / (hi - lo)
 
-    t, c, delta = trapezoid_response(0.05, 170.0, 95.0, n_markers=40, beta_sd=8.0)
+
+def test_step_dyssynchrony_removes_noise():
+    from analysis.displacement import plateau_mask
+    from analysis.properties import dyssynchrony_steps
+    from analysis.session_analysis import delta_noise_variance
+
+    c, delta = step_response(0.05, 170.0, 95.0, n_markers=40, beta_sd=5.0)
     keep = np.ones(40, bool)
     clean = dyssynchrony_steps(delta, keep, c)
-    noisy = delta + np.random.default_rng(4).normal(0, 0.03, delta.shape)
-    corrected = dyssynchrony_steps(noisy, keep, c, np.full(40, 0.03**2))
-    assert dyssynchrony_steps(noisy, keep, c) > 1.2 * clean
-    assert corrected == pytest.approx(clean, rel=0.1)
+    # the pipeline's curve: noisy displacement (mm) less its rest lead-in, over its plateau
+    amp = np.linspace(0.3, 2.0, 40)
+    rng = np.random.default_rng(4)
+    runs = []
+    for _ in range(20):
+        x = delta * amp + rng.normal(0, 0.01, delta.shape)
+        x = x - x[:6].mean(axis=0)
+        plateau = plateau_mask(x, 30)[0]
+        noisy = x / (np.where(plateau, x, 0).sum(axis=0) / plateau.sum(axis=0))
+        white = delta_noise_variance(noisy, c)
+        runs.append((dyssynchrony_steps(noisy, keep, c),
+                     dyssynchrony_steps(noisy, keep, c, white, plateau=plateau)))
+    raw, corrected = np.mean(runs, axis=0)
+    assert raw > 1.2 * clean
+    assert corrected == pytest.approx(clean, rel=0.05)
+
+
+def test_step_noise_factor_is_the_step_means_error_variance():
+    """Monte-Carlo of the first-order error of a step mean of (x - r) / (p - r)."""
+    from analysis.properties import command_runs, step_noise_factor
+
+    c, delta = step_response(0.05, 170.0, 95.0, n_markers=3, beta_sd=5.0)
+    start, length = command_runs(c)
+    plateau = np.broadcast_to((c == 255)[:, None], delta.shape)
+    rng = np.random.default_rng(2)
+    e = rng.normal(0, 1e-3, (4000,) + delta.shape)
+    x = delta[None] + e
+    r = x[:, :6].mean(axis=1, keepdims=True)
+    p = np.where(plateau[None], x, 0).sum(axis=1, keepdims=True) / plateau.sum(axis=0)
+    est = (x - r) / (p - r)
+    err = np.add.reduceat(est - delta[None], start, axis=1) / length[None, :, None]
+    means = np.add.reduceat(delta, start, axis=0) / length[:, None]
+    f = step_noise_factor(c, means, 6, plateau) * 1e-6
+    np.testing.assert_allclose(err.var(axis=0), f, rtol=0.1, atol=1e-9)
+    # the rest reference weighs fully at rest and not at all on the plateau
+    assert f[1, 0] > 1.9 * 1e-6 / 6 and f[20, 0] < 1e-6 / 300
 
 
 def test_dyssynchrony_and_its_noise_correction():
@@ -109,6 +154,82 @@ def test_spatial_linearity():
     lam = np.linalg.eigvalsh(np.cov(arc[:, 0].T))
     assert spatial_linearity(arc)[0] == pytest.approx(lam[-1] / lam.sum(), rel=1e-3)
     assert spatial_linearity(arc)[0] < 0.9
+
+
+def test_corrected_linearity_of_curved_paths_with_step_noise():
+    """Noise covariance measured within the command steps, subtracted without flooring: the
+    corrected linearity matches the noise-free one, straight (1) or curved (< 1)."""
+    from analysis.linearity import step_noise_covariance
+
+    c, delta = step_response(0.05, 170.0, 95.0, n_markers=30, beta_sd=5.0)
+    bend = np.linspace(0.0, 0.8, 30)  # 0: straight, up to a strongly bent path
+    s = 1.5 * delta  # mm along the path
+    path = np.stack([s, bend * 2 * s * (1.5 - s), 0.2 * s], axis=-1)  # off the chord mid-ramp
+    trials = np.broadcast_to(path, (10,) + path.shape)
+    rng = np.random.default_rng(7)
+    A = np.array([[0.02, 0.0, 0.0], [0.005, 0.015, 0.0], [0.01, -0.01, 0.04]])  # anisotropic
+    noisy = trials + rng.normal(0, 1, trials.shape) @ A.T
+    truth = spatial_linearity(trials.reshape(-1, 30, 3))
+    assert truth[0] == pytest.approx(1.0) and truth[-1] < 0.9
+    cov, dof = step_noise_covariance(noisy, c)
+    np.testing.assert_allclose(cov, np.broadcast_to(A @ A.T, cov.shape), atol=1.5e-4)  # ~5600 dof
+    np.testing.assert_allclose(cov.mean(axis=0), A @ A.T, atol=2e-5)
+    pooled = noisy.reshape(-1, 30, 3)
+    corrected = spatial_linearity(pooled, cov)
+    np.testing.assert_allclose(corrected, truth, atol=0.002)
+    assert abs(np.mean(corrected - truth)) < 5e-4
+    assert np.all(spatial_linearity(pooled) < truth - 0.001)  # uncorrected: noise lowers it
+
+
+def test_noise_corrected_indices_unbiased_monte_carlo():
+    """The small preset's true face, the paper's 10 trials, paper-like anisotropic capture noise,
+    12 noise draws through the pipeline's averaging and analysis: the noise-corrected
+    dyssynchrony and linearity against the truth (the estimator's formulas on the noise-free
+    trial means, over the markers it fitted). DU 1 (12 fitted markers, true dyssynchrony 0.003)
+    and DU 12 (0.008) are the low ones: the earlier correction was 24 % and 5 % low on them."""
+    from mocap.reconstruct.trials import NORMALISE_S, average_trials
+    from mocap.simulate import preset
+    from mocap.simulate.motion import true_positions
+    from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
+    from analysis.session_analysis import analyze_responses
+
+    cfg = preset("small", seed=11, battery=False, n_trials=10)
+    _, _, face = virtual_rig_and_face(cfg)
+    names = list(face.marker_names)
+    dus = (1, 4, 12)
+    true = {}
+    for du in dus:
+        sched = trapezoid(du)
+        n = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
+        T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
+                                     take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
+                      for k in range(1, cfg.n_trials + 1)])
+        c = sample_commands(sched, [du], np.arange(n) / cfg.fps)[:, 0]
+        _, delta = normalized_along(T.mean(axis=0) - face.rest_mm[None],
+                                    int(round(NORMALISE_S * cfg.fps)))
+        true[du] = (T, c, delta)
+    rng = np.random.default_rng(5)
+    A = np.array([[0.02, 0.0, 0.0], [0.004, 0.02, 0.0], [0.01, -0.008, 0.033]])  # mm
+    rejections = pd.DataFrame({"du": pd.Series(dtype=float), "marker": pd.Series(dtype=object)})
+    rel = {du: [] for du in dus}
+    lin = {du: [] for du in dus}
+    for _ in range(12):
+        avgs = [average_trials(du, list(true[du][0] + rng.normal(0, 1, true[du][0].shape) @ A.T),
+                               [true[du][1]] * cfg.n_trials, cfg.fps, [str(k) for k in range(10)])
+                for du in dus]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            res = analyze_responses(avgs, names, rejections, {}, n_boot=0,
+                                    noise_mm=np.full(len(names), np.sqrt(np.sum(A**2) / 3)))
+        est = res.properties.set_index("du")
+        for du in dus:
+            t = du_properties(du, true[du][2], true[du][1], cfg.fps, res.fitted[du], n_boot=0)
+            rel[du].append(est.loc[du, "dyssynchrony"] / t.dyssynchrony - 1)
+            lin[du].append(est.loc[du, "linearity_corrected_mean"] - 1)  # true paths: straight
+    bias = {du: float(np.mean(v)) for du, v in rel.items()}
+    assert abs(bias[1]) < 0.12, bias  # 12 markers: 15 % sd per draw, 4 % on the mean of 12
+    assert abs(bias[4]) < 0.04 and abs(bias[12]) < 0.03, bias
+    for du in dus:
+        assert abs(np.mean(lin[du])) < 3e-4 and np.max(np.abs(lin[du])) < 0.002, (du, lin[du])
 
 
 def test_displacement_along_is_unbiased_at_rest():
@@ -168,13 +289,14 @@ def test_properties_match_truth(small_sim, small_run):
         assert e["beta_fwd"] == pytest.approx(t["beta_fwd"], abs=2.0), du
         assert e["beta_bwd"] == pytest.approx(t["beta_bwd"], abs=2.0), du
         assert e["hysteresis"] == pytest.approx(t["hysteresis"], abs=3.0), du
-        # 3 trials only: the noise-corrected dyssynchrony is within 20 % or 0.001 (what is left
-        # of the noise after the correction; the paper preset's 10 trials: benchmarks/)
-        assert abs(e["dyssynchrony"] - t["dyssynchrony"]) <= 0.2 * t["dyssynchrony"] + 0.001, du
+        # 3 trials only, DU 1 with 11 fitted markers: one noise draw's dyssynchrony is within
+        # 15 % or 0.0002 (its bias: test_noise_corrected_indices_unbiased_monte_carlo; the
+        # paper preset's 10 trials: benchmarks/)
+        assert abs(e["dyssynchrony"] - t["dyssynchrony"]) <= 0.15 * t["dyssynchrony"] + 2e-4, du
         assert e["dyssynchrony_raw"] > e["dyssynchrony"]
         # the true paths are straight: the estimator's formula on the noise-free truth gives 1;
-        # the noise-corrected linearity (rest-take noise covariance removed) is within 0.02
-        assert abs(e["linearity_corrected_mean"] - 1.0) < 0.02, du
+        # the noise-corrected linearity (in-take noise covariance removed) is within 0.001
+        assert abs(e["linearity_corrected_mean"] - 1.0) < 0.001, du
 
 
 def test_property_chart_separates_feedback_dus(small_run):
