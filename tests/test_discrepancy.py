@@ -174,6 +174,7 @@ def test_trial_noise_ignores_a_linear_drift_across_trials():
 
 def _session(tmp_path_factory, effect: str, seed: int = 1, labeled: bool = True, **kw) -> Path:
     root = tmp_path_factory.mktemp(f"disc_{effect.replace(',', '_')}_{seed}")
+    kw.setdefault("motion_plans", ("A", "C"))  # the DU pairs of the battery and two smiles
     return make_session(root, seed=seed, labeled=labeled, n_markers=kw.pop("n_markers", 20),
                         effect=make_effect(effect), **kw)
 
