@@ -218,47 +218,60 @@ def prepare(fps: float, marker_names, rest_mm: np.ndarray, takes: list[TakeData]
 # phases of the command
 
 
-def phases(t: TakeData, frames: np.ndarray, fps: float, window_s: float = 0.1,
-           reversal_s: float = 0.3) -> np.ndarray:
+def phases(t: TakeData, frames: np.ndarray, fps: float, reversal_s: float = 0.3) -> np.ndarray:
     """Phase label index (into :data:`PHASES`) of each frame of a take, from its commands.
 
-    rise / fall by the change of the most-changing DU over the last ``window_s``: fast above
-    400 command units/s, slow below 150 (the paper's ramp is 255 per second); ``reversal``
-    for ``reversal_s`` after a DU's command turns back inside its range; ``hold`` when nothing
-    changes, ``rest`` when every command is 0.
+    Each command row's rate is its change over the time since the row before (command units/s);
+    a frame takes the rate of the row in force for each DU and the DU changing fastest decides:
+    rise / fall, fast above 400 units/s, slow below 150 (the paper's ramp is 255 per second);
+    ``hold`` when the row in force changed nothing, ``rest`` when every command is 0;
+    ``reversal`` for ``reversal_s`` after a DU's command turns back inside its range.
     """
-    from mocap.schedules import sample_commands
+    from mocap.schedules import TIME_TOL_S
 
     times = frames / fps
-    c = sample_commands(t.rows, list(t.dus), times)
-    c_prev = sample_commands(t.rows, list(t.dus), times - window_s)
-    dc = c - c_prev
-    j = np.argmax(np.abs(dc), axis=1)
-    d = dc[np.arange(len(times)), j]
-    rate = np.abs(d) / window_s
-    out = np.full(len(times), PHASES.index("hold"))
-    out[(c == 0).all(axis=1) & (d == 0)] = PHASES.index("rest")
-    for sign, name in ((1, "rise"), (-1, "fall")):
-        m = np.sign(d) == sign
-        out[m & (rate > 400)] = PHASES.index(f"{name}-fast")
-        out[m & (rate <= 400) & (rate >= 150)] = PHASES.index(name)
-        out[m & (rate < 150)] = PHASES.index(f"{name}-slow")
-    # reversals inside the range, from each DU's command rows
+    n = len(times)
+    best_rate = np.zeros(n)
+    best_sign = np.zeros(n)
+    level = np.zeros(n)
+    out = np.full(n, PHASES.index("hold"))
     for du in t.dus:
-        g = t.rows[t.rows["du"] == du].sort_values("time_s")
+        g = t.rows[t.rows["du"] == du].sort_values("time_s", kind="stable")
         cc = g["command"].to_numpy(float)
         tt = g["time_s"].to_numpy(float)
-        dcc = np.diff(cc)
-        mv = np.flatnonzero(dcc != 0)
-        if mv.size < 2:
+        if cc.size == 0:
             continue
-        s = np.sign(dcc[mv])
-        turns = mv[1:][s[1:] != s[:-1]]
-        for k in turns:
-            level = cc[k]
-            if 0.05 * 255 < level < 0.95 * 255:
-                t0 = tt[k + 1] if k + 1 < tt.size else tt[k]
-                out[(times >= t0) & (times < t0 + reversal_s)] = PHASES.index("reversal")
+        dc = np.diff(cc, prepend=0.0)
+        dt = np.diff(tt, prepend=tt[0] - 1.0)
+        rate = np.abs(dc) / np.maximum(dt, 1e-6)
+        idx = np.searchsorted(tt, times + TIME_TOL_S, side="right") - 1
+        i = np.maximum(idx, 0)
+        # a row's change is in force for one step (its own duration), then the command holds
+        ok = (idx >= 0) & (times - tt[i] < np.maximum(dt[i], 1e-6))
+        r = np.where(ok, rate[i], 0.0)
+        sg = np.where(ok, np.sign(dc[i]), 0.0)
+        c_now = np.where(idx >= 0, cc[i], 0.0)
+        take = r > best_rate
+        best_rate = np.where(take, r, best_rate)
+        best_sign = np.where(take, sg, best_sign)
+        level = np.maximum(level, c_now)
+        # reversals inside the range
+        mv = np.flatnonzero(np.diff(cc) != 0)
+        if mv.size >= 2:
+            s = np.sign(np.diff(cc)[mv])
+            for k in mv[1:][s[1:] != s[:-1]]:
+                if 0.05 * 255 < cc[k] < 0.95 * 255:
+                    t0 = tt[k]
+                    out[(times >= t0) & (times < t0 + reversal_s)] = -1
+    rev = out == -1
+    out[:] = PHASES.index("hold")
+    out[(level == 0) & (best_rate == 0)] = PHASES.index("rest")
+    for sign, name in ((1, "rise"), (-1, "fall")):
+        m = best_sign == sign
+        out[m & (best_rate > 400)] = PHASES.index(f"{name}-fast")
+        out[m & (best_rate <= 400) & (best_rate >= 150)] = PHASES.index(name)
+        out[m & (best_rate < 150)] = PHASES.index(f"{name}-slow")
+    out[rev] = PHASES.index("reversal")
     return out
 
 
@@ -595,6 +608,19 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                              untestable=untestable, stages=stages, final_model=stage_models[-1],
                              final_evidence=evidence, excluded_markers=prep.excluded,
                              heldout_residuals=residual_sets, models_by_stage=stage_models)
+
+
+def worst_marker(residual: np.ndarray, used: np.ndarray) -> tuple[int, np.ndarray]:
+    """The marker with the largest residual (S, M, 3) among ``used``, and the unit direction
+    (3,) in which its residual is largest (first principal axis)."""
+    e = np.where(used[None, :, None], residual, np.nan)
+    m = int(np.nanargmax(np.nansum(e ** 2, axis=(0, 2))))
+    r = residual[:, m]
+    r = r[np.isfinite(r).all(axis=1)]
+    if len(r) < 3:
+        return m, np.array([1.0, 0.0, 0.0])
+    _, _, vt = np.linalg.svd(r - r.mean(axis=0), full_matrices=False)
+    return m, vt[0]
 
 
 def _per_curve_spread(model: FaceModel, name: str) -> float:

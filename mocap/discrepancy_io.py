@@ -17,6 +17,7 @@ from analysis.discrepancy import (
     Prepared,
     prepare,
     run_discrepancy,
+    worst_marker,
 )
 from analysis.model_effects import CATALOGUE
 from mocap.atomic import write_text
@@ -187,17 +188,12 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
         panels = []
         for name in worst:
             k = takes.index(name)
-            t = data.takes[k]
             obs = data.observed(k)
             e0, e1 = res.heldout_residuals[i][k], res.heldout_residuals[i + 1][k]
-            sq = np.nansum(np.where(data.used[None, :, None], e0 ** 2, 0).sum(-1), axis=0)
-            m = int(np.argmax(sq))
-            n = data.du_ids.index(t.dus[0])
-            u = res.final_model.D[n, m]
-            u = u / max(np.linalg.norm(u), 1e-12)
+            m, u = worst_marker(e0, data.used)
             tt = data.samples(k) / data.fps
-            panels.append((f"{name}, marker {data.marker_names[m]}", tt, obs[:, m] @ u,
-                           (obs[:, m] - e0[:, m]) @ u, (obs[:, m] - e1[:, m]) @ u))
+            panels.append((f"{name}, marker {data.marker_names[m]} (along its largest residual)",
+                           tt, obs[:, m] @ u, (obs[:, m] - e0[:, m]) @ u, (obs[:, m] - e1[:, m]) @ u))
         p = fig_dir / f"discrepancy_traces_step{i + 1}_{res.steps[i].effect}.png"
         F.discrepancy_traces(p, panels, res.stages[i]["model"], res.stages[i + 1]["model"])
         out[f"measured vs simulated, step {i + 1} ({res.steps[i].effect})"] = f"figures/{p.name}"

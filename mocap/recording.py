@@ -292,7 +292,6 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
         takes = [t.name for t in data.takes]
         for name in worst:
             k = takes.index(name)
-            t = data.takes[k]
             frames = data.samples(k)
             obs = data.observed(k) + data.rest_mm
             M = obs.shape[1]
@@ -302,11 +301,9 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
             _points_over_time(rec, rr, f"discrepancy/{name}/measured", fr[ok], fps,
                               obs.reshape(-1, 3)[ok], class_ids=cid[ok],
                               radii=np.full(ok.sum(), 0.5, np.float32))
-            e0 = res.heldout_residuals[0][k]
-            sq = np.nansum(np.where(data.used[None, :, None], e0 ** 2, 0).sum(-1), axis=0)
-            m = int(np.argmax(sq))
-            u = res.final_model.D[data.du_ids.index(t.dus[0]), m]
-            u = u / max(np.linalg.norm(u), 1e-12)
+            from analysis.discrepancy import worst_marker
+
+            m, u = worst_marker(res.heldout_residuals[0][k], data.used)
             series = [(obs[:, m] - data.rest_mm[m]) @ u]
             labels = ["measured"]
             for i, st in enumerate(res.stages):
