@@ -234,7 +234,9 @@ def test_workflow_finds_two_hidden_effects_one_after_the_other(tmp_path_factory)
 
 
 def test_workflow_finds_hysteresis_from_a_static_base_model(tmp_path_factory):
-    root = _session(tmp_path_factory, "none", seed=4)
+    """The paper's standard schedule only (trapezoids, 3 trials): a static model misses the
+    hysteresis, and the workflow names it with the face's loop width."""
+    root = _session(tmp_path_factory, "none", seed=4, battery=False, motion_plans=())
     res, doc = _run(root, out=root / "static", base=())
     assert res.named[:1] == ["hysteresis"], doc["named"]
     face = pd.read_parquet(root / "truth" / "face.parquet")
