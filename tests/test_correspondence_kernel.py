@@ -132,3 +132,15 @@ def test_empty_take():
     pts = reconstruct_points(blobs, rig)
     assert len(pts) == 0 and pts.blob.shape == (0, 3)
     assert link_tracklets(pts.frame, pts.X).size == 0
+
+
+@pytest.mark.parametrize("dtype", ["str", object, "category", "string[pyarrow]"])
+def test_blob_camera_index_matches_camera_index(dtype):
+    from calib.camera import camera_index
+    from mocap.reconstruct.correspondence import blob_camera_index
+
+    ids = ["cam1", "cam2", "cam3"]
+    values = pd.Series(["cam2", "cam1", "camX", "cam3", "cam2", None], dtype=dtype)
+    got = blob_camera_index(values, ids)
+    np.testing.assert_array_equal(got, camera_index(values, ids))
+    np.testing.assert_array_equal(got, [1, 0, -1, 2, 1, -1])

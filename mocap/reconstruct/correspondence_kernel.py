@@ -424,6 +424,29 @@ def candidate_scores(views, err):
 
 
 @njit(cache=True)
+def contested_rows(views, scratch):
+    """Mask (m,) of the candidate rows views (m, C) sharing a blob with another row.
+
+    ``scratch`` (n_blobs,) int, all -1 on entry and on return.
+    """
+    m, C = views.shape
+    for r in range(m):
+        for c in range(C):
+            if views[r, c] >= 0:
+                scratch[views[r, c]] += 1
+    out = np.zeros(m, np.bool_)
+    for r in range(m):
+        for c in range(C):
+            if views[r, c] >= 0 and scratch[views[r, c]] > 0:
+                out[r] = True
+    for r in range(m):
+        for c in range(C):
+            if views[r, c] >= 0:
+                scratch[views[r, c]] = -1
+    return out
+
+
+@njit(cache=True)
 def one_point_per_blob(views, score, best):
     """Alive mask (m,) keeping, for every blob, only its best-scoring candidate row.
 
