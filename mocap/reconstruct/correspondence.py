@@ -220,8 +220,14 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
                    key=lambda p: -np.linalg.norm(rp.centre[p[0]] - rp.centre[p[1]]))
     min_cams = max(2, int(settings.min_cameras))
     accepted: list[np.ndarray] = []
+    # the blobs the candidate search walks: dropped from the buckets once most are used
+    pool = (index.ptr, index.order)
+    n_pool = n_unused = n_blobs
     for a, b in pairs:
-        views = _pair_points(bt, rig, rp, index, a, b, gates, used, settings.max_depth_mm,
+        if n_unused < n_pool // 2:
+            pool = kern.compact_buckets(*pool, used)
+            n_pool = n_unused
+        views = _pair_points(bt, rig, rp, index, pool, a, b, gates, used, settings.max_depth_mm,
                              min_cams)
         if views.shape[0] == 0:
             continue
@@ -230,21 +236,24 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
             continue
         accepted.append(views)
         kern.mark_used(views, used)
+        n_unused -= int(np.count_nonzero(views >= 0))  # accepted views are all unused blobs
     if not accepted:
         return _empty_points(C)
     return _final_triangulation(np.concatenate(accepted), bt, rp, gates, min_cams)
 
 
-def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex, a: int, b: int,
-                 gates: np.ndarray, used: np.ndarray, max_depth_mm: float,
-                 min_cams: int) -> np.ndarray:
+def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex,
+                 pool: tuple[np.ndarray, np.ndarray], a: int, b: int, gates: np.ndarray,
+                 used: np.ndarray, max_depth_mm: float, min_cams: int) -> np.ndarray:
     """Candidate rows (m, C) of blob indices (-1: no view) from the unused blobs of cameras
-    (a, b), each with the support ``min_cams`` asks for, in lexicographic row order."""
+    (a, b), each with the support ``min_cams`` asks for, in lexicographic row order.
+
+    ``pool`` (ptr, order): the (camera, frame) buckets of at least every unused blob."""
     C = len(rig)
     geo = PairGeometry.of(rig, a, b)
     gate = max(gates[a], gates[b])
     dth = 40.0 * gate / min(rp.focal[a], rp.focal[b])  # generous window in angle, rad
-    pa, pb = kern.pair_candidates(a, b, index.ptr, index.order, index.n_frames, bt.frame, bt.xn,
+    pa, pb = kern.pair_candidates(a, b, pool[0], pool[1], index.n_frames, bt.frame, bt.xn,
                                   bt.ray, used, geo.bn, geo.e1, geo.e2, geo.E, rp.focal[a],
                                   rp.focal[b], gate, dth)
     if pa.size == 0:

@@ -90,7 +90,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
     return xn, ray
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cell(x, x0, scale):
     """Column band (0 .. N_CELLS - 1) of image x (px) in a bucket whose bands start at ``x0`` px,
     ``1 / scale`` px wide; non-decreasing in x."""
@@ -171,6 +171,28 @@ def bucket_index(cam, fidx, uv, n_cams, n_frames):
 
 
 @njit(cache=True)
+def compact_buckets(ptr, order, used):
+    """The buckets (ptr, order) without their used blobs (used (n_blobs,) bool); the order
+    within each bucket is kept."""
+    nk = ptr.size - 1
+    ptr2 = np.zeros(nk + 1, np.int64)
+    n = 0
+    for k in range(nk):
+        for r in range(ptr[k], ptr[k + 1]):
+            if not used[order[r]]:
+                n += 1
+        ptr2[k + 1] = n
+    order2 = np.empty(n, np.int64)
+    n = 0
+    for k in range(nk):
+        for r in range(ptr[k], ptr[k + 1]):
+            if not used[order[r]]:
+                order2[n] = order[r]
+                n += 1
+    return ptr2, order2
+
+
+@njit(cache=True, inline="always")
 def _epipolar_angle(ray, i, bn, e1, e2):
     """Angle (rad, [0, 2 pi]) about the baseline ``bn`` of blob i's epipolar plane."""
     n0 = bn[1] * ray[i, 2] - bn[2] * ray[i, 1]
@@ -178,6 +200,28 @@ def _epipolar_angle(ray, i, bn, e1, e2):
     n2 = bn[0] * ray[i, 1] - bn[1] * ray[i, 0]
     return np.arctan2(n0 * e2[0] + n1 * e2[1] + n2 * e2[2],
                       n0 * e1[0] + n1 * e1[1] + n2 * e1[2]) + np.pi
+
+
+@njit(cache=True)
+def _sort_pairs(keys, idx, n):
+    """Sort keys[:n] ascending in place, idx[:n] along (insertion sort below 32 items, where
+    most frames' leftover blobs are, to spare an allocation per frame)."""
+    if n > 32:
+        o = np.argsort(keys[:n])
+        k2 = keys[:n][o]
+        i2 = idx[:n][o]
+        keys[:n] = k2
+        idx[:n] = i2
+        return
+    for r in range(1, n):
+        k, i = keys[r], idx[r]
+        h = r - 1
+        while h >= 0 and keys[h] > k:
+            keys[h + 1] = keys[h]
+            idx[h + 1] = idx[h]
+            h -= 1
+        keys[h + 1] = k
+        idx[h + 1] = i
 
 
 @njit(cache=True)
@@ -207,6 +251,11 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
     reject_b = np.empty(widest)
     slack = 1.0 + 1e-9
     for f in range(n_frames):
+        na = 0
+        for k in range(ptr[a * n_frames + f], ptr[a * n_frames + f + 1]):
+            na += not used[order[k]]
+        if na == 0:
+            continue
         nb = 0
         for k in range(ptr[b * n_frames + f], ptr[b * n_frames + f + 1]):
             j = order[k]
@@ -216,9 +265,9 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
                 nb += 1
         if nb == 0:
             continue
-        o = np.argsort(keys[:nb])
-        kb = keys[:nb][o]
-        jb = idx[:nb][o]
+        _sort_pairs(keys, idx, nb)
+        kb = keys[:nb]
+        jb = idx[:nb]
         for r in range(nb):
             j = jb[r]
             xb0, xb1 = xn[j, 0], xn[j, 1]
@@ -261,7 +310,7 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
     return pa[:m].copy(), pb[:m].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project(K, dist, R, t, c, X0, X1, X2):
     """World point (mm) -> distorted pixel (px) in camera c; NaN behind the camera.
 
@@ -282,7 +331,7 @@ def _project(K, dist, R, t, c, X0, X1, X2):
     return K[c, 0, 0] * xd + K[c, 0, 1] * yd + K[c, 0, 2], K[c, 1, 1] * yd + K[c, 1, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _nearest_blob(cells, x0, scale, order_x, uv_x, k, u, v, gate_px):
     """Nearest blob of bucket k to (u, v) px closer than ``gate_px``; -1 if none.
 
