@@ -19,8 +19,8 @@ reprojection error exceeds their camera's gate are dropped and the point re-solv
 camera: ``max(gate_min_px, gate_sigmas x the calibration's reprojection RMS)``, so a noisy camera
 gets a wider gate instead of losing its blobs.
 
-:mod:`mocap.reconstruct.correspondence_reference` keeps the former NumPy implementation (k-d
-trees, sorted searches) the tests compare this one against.
+:mod:`mocap.reconstruct.reference` keeps the former NumPy implementation (k-d trees, sorted
+searches) the tests compare this one against.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 Each kernel runs over every blob or candidate of a take in one call (one Python call per camera
 pair, none per frame or point); :mod:`mocap.reconstruct.correspondence` chains them with the
 fused triangulation kernel (:func:`calib.triangulation_kernel.triangulate_normalized`). The
-mathematics are those of the NumPy reference (:mod:`mocap.reconstruct.correspondence_reference`)
-operation for operation, so both find the same correspondences (a test checks it).
+mathematics are those of the NumPy reference (:mod:`mocap.reconstruct.reference`) operation for
+operation, so both find the same correspondences (a test checks it).
 
 Conventions: blobs are indexed by their row in the take's blob table; ``cam`` (n,) int camera
 index, ``fidx`` (n,) int frame index (frame - first frame); cameras are packed as ``K`` (C, 3, 3)

@@ -1,9 +1,9 @@
 """Compiled (numba) tracklet linking: mutual nearest neighbours between frames.
 
 The same rule as the former k-d tree implementation (kept as
-:func:`mocap.reconstruct.correspondence_reference.link_tracklets_reference`), in one call per
-take: points are grouped by frame and sorted by x within each frame, so a nearest-neighbour query
-scans only the points within the gate in x. Compiled on first use and cached on disk.
+:func:`mocap.reconstruct.reference.link_tracklets_reference`), in one call per take: points are
+grouped by frame and sorted by x within each frame, so a nearest-neighbour query scans only the
+points within the gate in x. Compiled on first use and cached on disk.
 """
 
 from __future__ import annotations
