@@ -23,7 +23,11 @@ import pandas as pd
 
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
-from mocap.reconstruct.correspondence import ReconstructionSettings, reconstruct_points
+from mocap.reconstruct.correspondence import (
+    ReconstructionSettings,
+    blob_camera_index,
+    reconstruct_points,
+)
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
 from mocap.reconstruct.labeling import (
     LabelSettings,
@@ -182,8 +186,6 @@ def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerS
     ``keep`` and the blobs' roles when ``record``. Independent of every other take once the rig
     is calibrated and the markers are known, so takes run in parallel (``RunSettings.jobs``).
     """
-    from calib.camera import camera_index
-
     blobs = session.read_take(name)
     n_frames = _take_frame_count(blobs)
     pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
@@ -191,7 +193,7 @@ def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerS
                      n_blobs=len(blobs))
     lab.stats["blobs"] = int(len(blobs))
     lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
-    cam_idx = camera_index(blobs["camera"], rig.ids)
+    cam_idx = blob_camera_index(blobs["camera"], rig.ids)
     missing = np.isnan(lab.X[..., 0])
     capture = {
         "camera_blobs": np.bincount(cam_idx, minlength=len(rig)),

@@ -4,7 +4,8 @@ Linking: each 3D point is joined to its mutual nearest neighbour in the next fra
 than ``link_gate_mm`` (a face marker moves well under 1 mm per frame at 120 fps, markers sit
 about 8 mm apart); points left without a successor are joined across gaps of up to
 ``max_gap_frames`` frames the same way. The chains (connected components of the link graph) are
-tracklets. Both steps are k-d tree queries over all frames at once.
+tracklets. Both steps run over all frames in one compiled call
+(:mod:`mocap.reconstruct.labeling_kernel`).
 
 Assignment: tracklets are taken in order of their first frame; those starting together are
 assigned to the free markers (whose previous tracklet has ended) by optimal assignment
@@ -32,8 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from mocap.reconstruct.correspondence import Points3D
-
-_BIG = 1.0e6  # mm between frames in the k-d tree
+from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
 
 
 @dataclass(frozen=True)
@@ -76,44 +76,18 @@ class LabeledTake:
 
 
 def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = LabelSettings()) -> np.ndarray:
-    """Tracklet id (n,) of each point, by mutual nearest-neighbour links between frames."""
+    """Tracklet id (n,) of each point, by mutual nearest-neighbour links between frames.
+
+    frame (n,) int; X (n, 3) mm. Tracklets are numbered in order of their lowest point index.
+    """
     n = frame.size
     if n == 0:
         return np.zeros(0, np.int64)
-    pts = np.column_stack([frame * _BIG, X])
-    tree = cKDTree(pts)
-    src, dst = [], []
-    has_next = np.zeros(n, bool)
-    has_prev = np.zeros(n, bool)
-    for gap in range(1, settings.max_gap_frames + 2):
-        cand = np.flatnonzero(~has_next) if gap > 1 else np.arange(n)
-        if cand.size == 0:
-            break
-        fwd_q = pts[cand].copy()
-        fwd_q[:, 0] += gap * _BIG
-        d, j = tree.query(fwd_q, k=1, distance_upper_bound=settings.link_gate_mm)
-        ok = np.isfinite(d)
-        i_, j_ = cand[ok], j[ok]
-        ok2 = ~has_prev[j_]
-        i_, j_ = i_[ok2], j_[ok2]
-        # mutual: j's nearest neighbour `gap` frames back is i
-        back = pts[j_].copy()
-        back[:, 0] -= gap * _BIG
-        d2, i2 = tree.query(back, k=1, distance_upper_bound=settings.link_gate_mm)
-        mutual = np.isfinite(d2) & (i2 == i_)
-        i_, j_ = i_[mutual], j_[mutual]
-        # one link per target
-        _, first = np.unique(j_, return_index=True)
-        i_, j_ = i_[first], j_[first]
-        src.append(i_)
-        dst.append(j_)
-        has_next[i_] = True
-        has_prev[j_] = True
-    s = np.concatenate(src)
-    t = np.concatenate(dst)
-    g = coo_matrix((np.ones(s.size), (s, t)), shape=(n, n))
-    _, comp = connected_components(g, directed=False)
-    return comp
+    first = int(frame.min())
+    fidx = np.ascontiguousarray(frame - first, dtype=np.int64)
+    nxt, prv = link_chains(fidx, np.ascontiguousarray(X, dtype=np.float64), int(fidx.max()) + 1,
+                           float(settings.link_gate_mm), int(settings.max_gap_frames))
+    return chain_labels(nxt, prv)
 
 
 def _tracklet_table(frame, X, comp):
