@@ -14,8 +14,9 @@ below are the identity), so adding an effect is writing one class here and regis
 Two effects add per-(DU, marker) parameters instead of one global value: ``hysteresis`` frees
 each curve's play width r (a base model without it has r = 0), and ``curvature`` adds a path
 basis 4 y (1 - y) with its own 3D vector per curve (paths bow sideways). Global parameters are
-identified by a profile over ``grid`` followed by a bounded scalar refinement (dead time, being
-piecewise smooth in sampled data, by a fine grid), refitting every curve inside.
+identified by a profile over ``grid`` followed by a bounded scalar refinement, refitting every
+curve inside (dead time, piecewise smooth in sampled data, on a 25 ms grid first, and
+with its uncertainty floored at the fine time grid's step).
 
 Effects are frozen dataclasses; ``value`` is the global parameter (ignored by per-curve effects).
 """
@@ -57,7 +58,7 @@ class Effect:
     per_curve: ClassVar[bool] = False
     frees_r: ClassVar[bool] = False
     n_bases: ClassVar[int] = 0  # extra path bases per curve
-    fine_grid: ClassVar[bool] = False  # refine by a fine grid instead of a scalar search
+    fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
     min_plausible: ClassVar[float] = 0.0  # |value| below this is no effect at all
     affects_curves: ClassVar[bool] = True  # False: single-DU takes do not depend on the value,
     #                                         so the curves are fitted once for its profile

@@ -9,8 +9,10 @@ interaction effects (``coupling``) and are predicted like any other.
 
 A global effect parameter is identified by a profile: for each value on the effect's grid every
 curve is refitted (warm start) and the training sum of squares (all training takes, mm^2) is
-recorded; the best grid value is refined by a bounded scalar search (or a fine grid for dead
-time). Its uncertainty is the profile's curvature with the residuals' effective sample size.
+recorded; the best grid value is refined by a bounded scalar search between its neighbours.
+Its uncertainty is the profile's curvature with the residuals' effective sample size (for a
+time shift, never below the fine time grid's resolution: the sampled likelihood of a dead time
+is piecewise constant at that scale).
 """
 
 from __future__ import annotations
