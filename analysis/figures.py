@@ -218,3 +218,26 @@ def discrepancy_traces(path, panels, before, after) -> Path:
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def discrepancy_marker_map(path, rest_mm, ratios, stage_names) -> Path:
+    """Held-out residual RMS / noise floor per marker on the face (xy plane), one panel per stage.
+
+    rest_mm : (M, 3) rest positions, mm.  ratios : list of (M,) arrays (NaN: not scored).
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(ratios), figsize=(3.6 * len(ratios) + 1.0, 5.2), squeeze=False)
+    vmax = max(3.0, float(np.nanmax(np.concatenate(ratios)))) if len(ratios) else 3.0
+    for ax, r, name in zip(axes[0], ratios, stage_names):
+        ok = np.isfinite(r)
+        sc = ax.scatter(rest_mm[ok, 0], rest_mm[ok, 1], c=r[ok], cmap="viridis", vmin=1.0,
+                        vmax=vmax, s=60, edgecolors="k", linewidths=0.3)
+        bad = ok & (r > 1.5)
+        ax.scatter(rest_mm[bad, 0], rest_mm[bad, 1], s=140, facecolors="none", edgecolors="r")
+        ax.scatter(rest_mm[~ok, 0], rest_mm[~ok, 1], marker="x", c="grey", s=30)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (mm)")
+        ax.set_title(name, fontsize=9)
+    axes[0, 0].set_ylabel("y (mm)")
+    fig.colorbar(sc, ax=axes[0].tolist(), label="held-out residual RMS / noise floor (red: > 1.5)")
+    return _save(fig, path)

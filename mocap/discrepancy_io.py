@@ -176,6 +176,17 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
         p = fig_dir / f"discrepancy_localisation_stage{i}.png"
         F.discrepancy_localisation(p, takes, list(PHASES), grid, f"stage {i}: {st['model']}")
         out[f"localisation, stage {i}"] = f"figures/{p.name}"
+    names = list(data.marker_names)
+    ratios = []
+    for st in res.stages:
+        r = np.full(len(names), np.nan)
+        for mname, v in st["markers"].items():
+            r[names.index(mname)] = v["ratio"]
+        ratios.append(r)
+    p = fig_dir / "discrepancy_markers.png"
+    F.discrepancy_marker_map(p, data.rest_mm, ratios, [f"stage {i}: {st['model']}"
+                                                      for i, st in enumerate(res.stages)])
+    out["per marker, every stage"] = f"figures/{p.name}"
     p = fig_dir / "discrepancy_gap.png"
     F.discrepancy_gap(p, [st["model"] for st in res.stages], [st["heldout_rms_mm"] for st in res.stages],
                       {du: [st["dus"].get(du, {}).get("rms_mm", np.nan) for st in res.stages]

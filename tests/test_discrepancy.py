@@ -275,7 +275,9 @@ def test_cli_on_a_raw_session_writes_every_output(tmp_path_factory):
     assert step["parameters"]["delay_s"] == pytest.approx(0.06, rel=0.2)
     assert {e["effect"] for e in step["evidence"]} == set(CATALOGUE) - {"hysteresis"}
     figs = sorted(p.name for p in (out / "figures").glob("*.png"))
-    assert "discrepancy_gap.png" in figs and any(f.startswith("discrepancy_traces") for f in figs)
+    assert {"discrepancy_gap.png", "discrepancy_markers.png", "discrepancy_localisation_stage0.png",
+            "discrepancy_localisation_stage1.png"} <= set(figs)
+    assert any(f.startswith("discrepancy_traces_step1_deadtime") for f in figs)
     assert all((out / "figures" / f).stat().st_size > 5000 for f in figs)
     assert "deadtime" in (out / "discrepancy.md").read_text()
     from collections import Counter
