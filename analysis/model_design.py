@@ -413,7 +413,7 @@ def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) ->
 def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.016,
                     fall_start_s: float | None = None, weights: np.ndarray | None = None,
                     preview: int = 1, horizon: int = 12, sweeps: int = 0,
-                    headroom: float = 8.0, spread_weight: float = 0.2,
+                    headroom: float = 24.0, spread_weight: float = 0.05,
                     trial: int = 1) -> ModelDesign:
     """Commands of ``dus`` whose model response follows ``ref`` (see the module docstring).
 
@@ -497,7 +497,8 @@ def predicted_delta(model: FaceModel, rows: pd.DataFrame, n_frames: int, trial: 
 
 def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
                       measured: np.ndarray, measured_names, *, previous: Reference | None = None,
-                      gain: float = 1.0, smooth_frames: int = 3, trial: int = 1) -> Reference:
+                      gain: float = 1.0, smooth_frames: int = 3, weights: np.ndarray | None = None,
+                      trial: int = 1) -> Reference:
     """The next reference of iterative learning control from a played take.
 
     Parameters
@@ -509,9 +510,13 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
         the model's own prediction of ``rows`` stands for it.
     gain : learning gain (1: the whole error at once).
     smooth_frames : moving-average window of the error (frames; measurement noise).
+    weights : (M,) marker weights of the design (default :func:`marker_weights`).
 
-    Returns the reference r_{k+1}(t) = r_k(t) + gain (P(t) - delta_m(t)) per marker of the model
-    (markers the take does not have keep r_k), on the take's frames.
+    Returns the reference r_{k+1}(t) = r_k(t) + gain sum_m w_m (P(t) - delta_m(t)) over the
+    plan's rise and fall (elsewhere r_k), on the take's frames. The markers' weighted mean error
+    is learnt, not each marker's: the mean is what a command can move, while a marker whose
+    normalised displacement cannot follow the plan (pulled two ways by two DUs) would wind its
+    own reference up without end.
     """
     from analysis.evaluation import realized_delta
 
@@ -537,15 +542,25 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
         num = uniform_filter1d(np.where(ok, err, 0.0), smooth_frames, axis=0, mode="nearest")
         cnt = uniform_filter1d(ok * 1.0, smooth_frames, axis=0, mode="nearest")
         err = np.where(cnt > 0, num / np.maximum(cnt, 1e-12), np.nan)
+    # only the evaluated parts learn: the hold and the rests anchor the scale (the normalised
+    # displacement divides by the take's own plateau, so an error there cannot be corrected and
+    # learning it would drift the whole motion's scale)
+    learn = ((t >= plan_ref.rise[0]) & (t < plan_ref.rise[1])) | \
+        ((t >= plan_ref.fall[0]) & (t < plan_ref.fall[1]))
+    w = marker_weights(model, dus, trial=trial) if weights is None else np.asarray(weights, float)
+    ok = np.isfinite(err) & (w[None] > 0)
+    e_mean = np.sum(np.where(ok, err, 0.0) * w[None], axis=1) / np.maximum(
+        np.sum(ok * w[None], axis=1), 1e-12)
+    e_mean = np.where(learn & ok.any(axis=1), e_mean, 0.0)
     if previous is not None:
         r_prev = previous.at(t, M)
     else:
         r_prev = predicted_delta(model, rows, n_frames, trial)
-    r_new = r_prev + gain * np.nan_to_num(err)
+    r_new = r_prev + gain * (e_mean[:, None] if r_prev.ndim == 2 else e_mean)
     # before the motion starts nothing is asked; the reference stays a normalised displacement
     r_new[t < plan_ref.start_s] = 0.0
     ideal = np.interp(t, plan_ref.t_s, plan_ref.ideal)
-    return Reference(t, np.clip(r_new, -0.25, 1.25), ideal, plan_ref.rise, plan_ref.fall,
+    return Reference(t, np.clip(r_new, -0.5, 1.5), ideal, plan_ref.rise, plan_ref.fall,
                      plan_ref.start_s, plan_ref.end_s, plan_ref.label)
 
 
