@@ -49,6 +49,7 @@ from analysis.plans import PLAN_NAMES
 
 SUBSTEPS = np.array([1.0 / 3.0, 2.0 / 3.0, 1.0])  # points per command step where the cost is read
 COARSE = 8  # coarse candidate spacing, command units (then +-COARSE-1 around the best)
+SNR_NOISE = 20.0  # a marker teaches the refinement with weight s^2 / (s^2 + (SNR_NOISE noise)^2)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -112,7 +113,9 @@ def file_reference(path, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002)
     The take rests for ``timing.start_s``, follows P(time_s) over the file's span, holds its last
     value for ``timing.hold_s`` and rests ``timing.tail_s`` more; a file may reverse anywhere
     (a smile that relaxes half-way and comes back). Forward = the file's span; backward = its
-    second half (where a plan with a return comes back).
+    second half (where a plan with a return comes back). P is the fraction of the full motion
+    the design aims at; the evaluation compares the take, normalised by its own largest
+    displacement, with P / max(P).
     """
     df = pd.read_csv(path)
     missing = {"time_s", "P"} - set(df.columns)
@@ -130,7 +133,8 @@ def file_reference(path, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002)
     t = np.arange(0.0, end + dt_s, dt_s)
     r = np.where(t < timing.start_s, 0.0, np.interp(t - timing.start_s + ts[0], ts, p))
     mid = timing.start_s + 0.5 * span
-    return Reference(t, r, r, (timing.start_s, timing.start_s + span), (mid, timing.start_s + span),
+    ideal = r / max(float(p.max()), 1e-9)
+    return Reference(t, r, ideal, (timing.start_s, timing.start_s + span), (mid, timing.start_s + span),
                      timing.start_s, end, str(path))
 
 
@@ -215,7 +219,7 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
     c : (C,) candidate commands held over every step, or (C, H) one command per step
         (command units).
     durations_s : (H,) the steps' durations, s.
-    fractions : (J,) points inside each step (fractions of its duration; the last is 1).
+    fractions : (J,) increasing points inside each step (fractions of its duration, at most 1).
 
     Returns
     -------
@@ -232,17 +236,20 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
     pl0 = np.broadcast_to(state.plays, (C,) + state.plays.shape)
     hw = p.halfwidths[None]
     fr = np.asarray(fractions, float)
+    J = fr.size
+    if fr[-1] != 1.0:  # the state carries over from the step's end
+        fr = np.append(fr, 1.0)
     ys, first = [], None
     for h in range(H):
         ch = c[:, h]
-        s = fr * durations_s[h]  # (J,)
+        s = fr * durations_s[h]  # (J,) or (J + 1,)
         if p.tau_s > 0:
             a = ch[:, None] + (a0 - ch)[:, None] * np.exp(-s / p.tau_s)[None]  # (C, J)
         else:
             a = np.broadcast_to(ch[:, None], (C, s.size))
         b = np.clip(b0[:, None], a - p.backlash, a + p.backlash) if p.backlash > 0 else a
         plays = np.clip(pl0[:, None], b[..., None, None] - hw[:, None], b[..., None, None] + hw[:, None])
-        ys.append(normalized_logistic(plays.mean(axis=-1), p.alpha, p.beta))  # (C, J, Ma)
+        ys.append(normalized_logistic(plays[:, :J].mean(axis=-1), p.alpha, p.beta))  # (C, J, Ma)
         a0, b0, pl0 = a[:, -1].copy(), b[:, -1].copy(), plays[:, -1]
         if h == 0:
             first = (a0, b0, pl0)
@@ -495,9 +502,38 @@ def predicted_delta(model: FaceModel, rows: pd.DataFrame, n_frames: int, trial: 
     return realized_delta(X, commands_matrix(rows, dus, n_frames, model.fps))
 
 
+def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised displacement of a measured take without the bias of noise.
+
+    As :func:`analysis.evaluation.realized_delta`, but the length of each displacement is
+    sqrt(max(|d|^2 - 3 s_m^2, 0)), s_m the marker's noise per axis (its standard deviation over
+    the rest frames before the first command change): |d| of pure noise is positive, which
+    would teach a refinement to lag near rest. Noise-free data give realized_delta exactly.
+
+    Returns delta (n_frames, M), the plateau length (M,) mm and the noise s_m (M,) mm.
+    """
+    import warnings
+
+    from analysis.displacement import plateau_level
+
+    change = np.flatnonzero(np.any(np.diff(command, axis=0) != 0, axis=-1))
+    lead = int(change[0]) + 1 if change.size else 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rest = np.nanmean(X[:lead], axis=0)
+        var = np.nanmean(np.nanvar(X[:lead], axis=0), axis=-1) if lead > 2 else np.zeros(X.shape[1])
+    var = np.nan_to_num(var)
+    sq = np.sum((X - rest[None]) ** 2, axis=-1) - 3.0 * var[None]
+    length = np.sqrt(np.clip(sq, 0.0, None))
+    peak = plateau_level(length, smooth_frames)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return length / np.where(peak > 0, peak, np.nan)[None], peak, np.sqrt(var)
+
+
 def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
                       measured: np.ndarray, measured_names, *, previous: Reference | None = None,
-                      gain: float = 1.0, smooth_frames: int = 3, weights: np.ndarray | None = None,
+                      gain: float = 1.0, smooth_frames: int = 7, weights: np.ndarray | None = None,
                       trial: int = 1) -> Reference:
     """The next reference of iterative learning control from a played take.
 
@@ -506,11 +542,13 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
     plan_ref : the plan (what the markers should do).
     rows : the commands that were played.  measured : (n_frames, M') marker positions (mm) of
         the played take at the model's frame rate, NaN where missing; measured_names : (M',).
+        Its normalised displacement is read without the bias of noise (:func:`debiased_delta`).
     previous : the reference those commands were designed for (per marker or not); without it
         the model's own prediction of ``rows`` stands for it.
     gain : learning gain (1: the whole error at once).
     smooth_frames : moving-average window of the error (frames; measurement noise).
-    weights : (M,) marker weights of the design (default :func:`marker_weights`).
+    weights : (M,) marker weights of the design (default :func:`marker_weights`), times each
+        marker's signal-to-noise factor s^2 / (s^2 + (20 noise)^2) (s its measured plateau).
 
     Returns the reference r_{k+1}(t) = r_k(t) + gain sum_m w_m (P(t) - delta_m(t)) over the
     plan's rise and fall (elsewhere r_k), on the take's frames. The markers' weighted mean error
@@ -518,7 +556,6 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
     normalised displacement cannot follow the plan (pulled two ways by two DUs) would wind its
     own reference up without end.
     """
-    from analysis.evaluation import realized_delta
 
     names = list(model.marker_names)
     n_frames = measured.shape[0]
@@ -526,13 +563,17 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
         raise ValueError(f"refine: expected measured positions (n_frames, {len(measured_names)}, 3), "
                          f"got {measured.shape}")
     dus = sorted(int(d) for d in pd.unique(rows["du"]))
-    delta_meas = realized_delta(measured, commands_matrix(rows, dus, n_frames, model.fps))
+    delta_meas, peak_meas, noise_meas = debiased_delta(
+        measured, commands_matrix(rows, dus, n_frames, model.fps))
     M = len(names)
     delta = np.full((n_frames, M), np.nan)
+    snr = np.zeros(M)
     pos = {n: i for i, n in enumerate(measured_names)}
     for m, n in enumerate(names):
         if n in pos:
             delta[:, m] = delta_meas[:, pos[n]]
+            s2 = np.nan_to_num(peak_meas[pos[n]]) ** 2
+            snr[m] = s2 / max(s2 + (SNR_NOISE * noise_meas[pos[n]]) ** 2, 1e-300) if s2 > 0 else 0.0
     t = np.arange(n_frames) / model.fps
     err = plan_ref.at(t, M) - delta
     if smooth_frames > 1:
@@ -548,6 +589,7 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
     learn = ((t >= plan_ref.rise[0]) & (t < plan_ref.rise[1])) | \
         ((t >= plan_ref.fall[0]) & (t < plan_ref.fall[1]))
     w = marker_weights(model, dus, trial=trial) if weights is None else np.asarray(weights, float)
+    w = w * snr  # markers that barely move above the noise teach little
     ok = np.isfinite(err) & (w[None] > 0)
     e_mean = np.sum(np.where(ok, err, 0.0) * w[None], axis=1) / np.maximum(
         np.sum(ok * w[None], axis=1), 1e-12)

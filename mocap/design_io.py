@@ -110,8 +110,8 @@ def read_reference(path, plan_ref: Reference, marker_names) -> Reference:
             raise ValueError(f"{path}: none of the model's markers is a column")
         r = np.column_stack([df[n].to_numpy(float) if n in df.columns else np.full(t.size, np.nan)
                              for n in marker_names])
-    return Reference(t, r, plan_ref.rise, plan_ref.fall, plan_ref.start_s, plan_ref.end_s,
-                     plan_ref.label)
+    return Reference(t, r, np.interp(t, plan_ref.t_s, plan_ref.ideal), plan_ref.rise,
+                     plan_ref.fall, plan_ref.start_s, plan_ref.end_s, plan_ref.label)
 
 
 # ----------------------------------------------------------------------------------------------
