@@ -80,7 +80,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--reference", type=Path, default=None,
                    help="the previous design's .reference.csv (default: the model's prediction "
                         "of the played commands)")
-    g.add_argument("--gain", type=float, default=1.0, help="learning gain of --refine (1)")
+    g.add_argument("--gain", type=float, default=0.5,
+                   help="learning gain of --refine (0.5: steady under measurement noise; 1 learns "
+                        "a noise-free take at once)")
     g.add_argument("--check", action="store_true",
                    help="closed loop on the virtual face of a simulated session: paper vs model")
 
