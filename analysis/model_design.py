@@ -5,32 +5,43 @@ The paper designs commands by inverting full-sweep sigmoids (:func:`analysis.des
 it knows nothing of reversals inside the range (minor loops), actuator dynamics (lag, dead time,
 backlash) or several DUs acting at once. Here the command of every DU at every command step is
 chosen so that the model's predicted normalised displacement of the chosen markers follows the
-reference (the plan), by a causal search with a short preview (model predictive control with one
-move held over the preview):
+reference (the plan), by a causal search (model predictive control over integer commands):
 
-    at step i, for each DU n in turn, over candidate integer commands c (0..255, coarse then fine):
-        simulate the model from its current state with c held over steps i .. i + preview - 1
-        (the other DUs hold their latest commands), at ``SUBSTEPS`` points per step
-        cost(c) = sum_points sum_m w_m (|d_m(t)| / n_m - r_m(t))^2
-    keep the best c, advance the model's state over step i with it.
+    at step i, for each DU n in turn (the others hold their latest commands), over candidate
+    integer commands c (0..255 every 8, then the 15 around the best):
+        simulate the model from its current state with c held over steps i .. i + preview - 1,
+        at ``SUBSTEPS`` points per step (vectorised over candidates and markers)
+        cost(c) = sum_points [ (sum_m w_m e_m)^2 + spread_weight sum_m w_m e_m^2 ],
+        e_m = |d_m(t)| / n_m - r_m(t)
+    keep the best c, advance the model's state over step i with every DU's choice.
+
+Optional later passes (``sweeps``) score step i's command over a longer ``horizon`` with the
+following steps at the previous pass's commands (Gauss-Seidel on the whole plan's cost), which
+lets a command anticipate where a later one saturates.
 
 d_m is the model's displacement of marker m (every effect of the model: coupling, curvature and
-saturation act on the stacked responses of the DUs), n_m its displacement at full command (the
-hold of the plan, so that |d_m| / n_m is the normalised displacement the evaluation measures),
-r_m(t) the reference (the plan's ideal, the same for every marker; per marker in a refinement)
-and w_m the marker weights (:func:`marker_weights`).
+saturation act on the stacked responses of the DUs), n_m its displacement at full motion (the
+steady response to 255 - ``headroom``: the evaluation normalises each marker by its own largest
+displacement, so the design may call a slightly smaller motion "1" and keep some command in hand
+to drive a lagging actuator towards it), r_m(t) the reference (the plan's ideal, the same for
+every marker; per marker in a refinement) and w_m the marker weights (:func:`marker_weights`).
+The markers' mean follows the plan (what the evaluation measures); their spread around it is
+mostly beyond any command, and with several DUs decides how they share the work.
 
 The model's state is stepped exactly between command steps: a command held over a step drives
 the actuator monotonically (first-order lag: a(t) = c + (a0 - c) exp(-t / tau)), so every
 play operator (backlash, the Prandtl-Ishlinskii plays of the skin) at any point inside the step
 is the clip of its state at the step's start; a dead time L shifts the reference by L instead
 (the command of step i acts from t_i + L). The lag and the dead band are inverted this way
-through the search; hysteresis under arbitrary reversals is the model's own.
+through the search; hysteresis under arbitrary reversals is the model's own. Python loops run
+over command steps and DUs only; everything per candidate, point and marker is vectorised.
 
-Iterative refinement (:func:`refine_design`) is reference-adaptation iterative learning control:
-a played take's tracking error e_m(t) = P(t) - delta_m(t) updates the reference the model tracks,
-r_{k+1} = r_k + gain e_k, with r_k the previous reference (or, without one, the model's own
-prediction of the played commands), and the commands are designed again through the model.
+Iterative refinement (:func:`refined_reference`) is reference-adaptation iterative learning
+control: a played take's tracking error updates the reference the model tracks,
+r_{k+1}(t) = r_k(t) + gain sum_m w'_m (P(t) - delta_m(t)) over the plan's rise and fall, with
+r_k the previous reference (or, without one, the model's own prediction of the played commands),
+delta_m read without the bias of noise and w'_m the design's weights times each marker's signal
+to noise; the commands are then designed again through the model.
 
 Times in s, commands in command units (integers 0..255), displacements in mm; a reference is
 dimensionless (0 at rest, 1 at the plan's full motion).
