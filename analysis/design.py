@@ -84,3 +84,33 @@ def paper_design(plan_name: str, responses: Mapping[int, SigmoidPair],
             "command": np.clip(round_half_up(c), 0, 255),
         }))
     return pd.concat(frames, ignore_index=True)
+
+
+def paper_design_series(t_s, P, responses: Mapping[int, SigmoidPair], *, start_s: float,
+                        step_s: float, dus: Sequence[int] | None = None) -> pd.DataFrame:
+    """The paper's rule on any plan P(t) (t_s from the plan's start, s): at every command step
+    c = R_fwd^-1(P) while P rises and R_bwd^-1(P) while it falls (the branch of the last change
+    where P is flat). A reversal inside the range jumps from one branch to the other: the
+    full-sweep sigmoids know no minor loops, which is where this rule fails.
+    """
+    t_s = np.asarray(t_s, float)
+    P = np.asarray(P, float)
+    dus = sorted(responses) if dus is None else list(dus)
+    n = int(np.floor((t_s[-1] - t_s[0]) / step_s + 1e-9))
+    k = np.arange(1, n + 1)
+    p = np.interp(t_s[0] + k * step_s, t_s, P)
+    dp = np.diff(np.concatenate([[0.0], p]))
+    sign = np.sign(dp)
+    last = np.maximum.accumulate(np.where(sign != 0, np.arange(sign.size), 0))
+    rising = sign[last] >= 0
+    t = np.concatenate([[0.0], start_s + (k - 1) * step_s])
+    frames = []
+    for du in dus:
+        r = responses[du]
+        pc = np.clip(p, 1e-6, 1 - 1e-6)
+        c = np.where(rising, inverse_sigmoid(pc, r.alpha_fwd, r.beta_fwd),
+                     inverse_sigmoid(pc, r.alpha_bwd, r.beta_bwd))
+        c = np.where(p <= 0, 0.0, np.where(p >= 1, 255.0, c))
+        frames.append(pd.DataFrame({"time_s": np.round(t, 9), "du": int(du),
+                                    "command": np.clip(round_half_up(np.concatenate([[0.0], c])), 0, 255)}))
+    return pd.concat(frames, ignore_index=True)

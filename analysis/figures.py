@@ -241,3 +241,26 @@ def discrepancy_marker_map(path, rest_mm, ratios, stage_names) -> Path:
     axes[0, 0].set_ylabel("y (mm)")
     fig.colorbar(sc, ax=axes[0].tolist(), label="held-out residual RMS / noise floor (red: > 1.5)")
     return _save(fig, path)
+
+
+def design_comparison(path, title, evaluations: dict) -> Path:
+    """Designed motions side by side: one panel per method (e.g. paper, model, refined), each the
+    plan P(t) and the realized normalised displacement (mean +- sd over markers) in closed loop.
+
+    evaluations : method name -> :class:`analysis.evaluation.MotionEvaluation`.
+    """
+    plt = _plt()
+    n = max(len(evaluations), 1)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), sharey=True, squeeze=False)
+    for ax, (name, ev) in zip(axes[0], evaluations.items()):
+        ax.plot(ev.t, ev.ideal, color="k", lw=2, label="plan P(t)")
+        ax.fill_between(ev.t, ev.mean - ev.std, ev.mean + ev.std, color="tab:purple", alpha=0.2)
+        ax.plot(ev.t, ev.mean, color="tab:purple", lw=1.5, label="realized (mean +- sd)")
+        ax.set_xlabel("time (s)")
+        ax.set_title(f"{name}: RMS fwd {ev.rms_forward:.3f}, bwd {ev.rms_backward:.3f}\n"
+                     f"lag {ev.lag_s * 1000:.0f} ms", fontsize=9)
+        ax.set_ylim(-0.05, 1.15)
+    axes[0, 0].set_ylabel("normalised displacement (1)")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=10, y=1.08)
+    return _save(fig, path)

@@ -1,0 +1,651 @@
+"""Motion design through the identified face model (issue #11): commands that make the markers
+follow a plan, found by optimising the command sequence through the whole model.
+
+The paper designs commands by inverting full-sweep sigmoids (:func:`analysis.design.paper_design`):
+it knows nothing of reversals inside the range (minor loops), actuator dynamics (lag, dead time,
+backlash) or several DUs acting at once. Here the command of every DU at every command step is
+chosen so that the model's predicted normalised displacement of the chosen markers follows the
+reference (the plan), by a causal search (model predictive control over integer commands):
+
+    at step i, for each DU n in turn (the others hold their latest commands), over candidate
+    integer commands c (0..255 every 8, then the 15 around the best):
+        simulate the model from its current state with c held over steps i .. i + preview - 1,
+        at ``SUBSTEPS`` points per step (vectorised over candidates and markers)
+        cost(c) = sum_points [ (sum_m w_m e_m)^2 + spread_weight sum_m w_m e_m^2 ],
+        e_m = |d_m(t)| / n_m - r_m(t)
+    keep the best c, advance the model's state over step i with every DU's choice.
+
+Optional later passes (``sweeps``) score step i's command over a longer ``horizon`` with the
+following steps at the previous pass's commands (Gauss-Seidel on the whole plan's cost), which
+lets a command anticipate where a later one saturates.
+
+d_m is the model's displacement of marker m (every effect of the model: coupling, curvature and
+saturation act on the stacked responses of the DUs), n_m its displacement at full motion (the
+steady response to 255 - ``headroom``: the evaluation normalises each marker by its own largest
+displacement, so the design may call a slightly smaller motion "1" and keep some command in hand
+to drive a lagging actuator towards it), r_m(t) the reference (the plan's ideal, the same for
+every marker; per marker in a refinement) and w_m the marker weights (:func:`marker_weights`).
+The markers' mean follows the plan (what the evaluation measures); their spread around it is
+mostly beyond any command, and with several DUs decides how they share the work.
+
+The model's state is stepped exactly between command steps: a command held over a step drives
+the actuator monotonically (first-order lag: a(t) = c + (a0 - c) exp(-t / tau)), so every
+play operator (backlash, the Prandtl-Ishlinskii plays of the skin) at any point inside the step
+is the clip of its state at the step's start; a dead time L shifts the reference by L instead
+(the command of step i acts from t_i + L). The lag and the dead band are inverted this way
+through the search; hysteresis under arbitrary reversals is the model's own. Python loops run
+over command steps and DUs only; everything per candidate, point and marker is vectorised.
+
+Iterative refinement (:func:`refined_reference`) is reference-adaptation iterative learning
+control: a played take's tracking error updates the reference the model tracks,
+r_{k+1}(t) = r_k(t) + gain sum_m w'_m (P(t) - delta_m(t)) over the plan's rise and fall, with
+r_k the previous reference (or, without one, the model's own prediction of the played commands),
+delta_m read without the bias of noise and w'_m the design's weights times each marker's signal
+to noise; the commands are then designed again through the model.
+
+Times in s, commands in command units (integers 0..255), displacements in mm; a reference is
+dimensionless (0 at rest, 1 at the plan's full motion).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from analysis.design import PlanTiming
+from analysis.face_model import PLAY_FRACTIONS, FaceModel, normalized_logistic
+from analysis.plans import PLAN_NAMES
+
+SUBSTEPS = np.array([1.0 / 3.0, 2.0 / 3.0, 1.0])  # points per command step where the cost is read
+COARSE = 8  # coarse candidate spacing, command units (then +-COARSE-1 around the best)
+SNR_NOISE = 20.0  # a marker teaches the refinement with weight s^2 / (s^2 + (SNR_NOISE noise)^2)
+
+
+# ----------------------------------------------------------------------------------------------
+# references
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What the markers should do: a normalised displacement over time.
+
+    t_s : (T,) increasing times, s from the take's first frame.
+    r : (T,) the same for every marker, or (T, M) per marker of the model (NaN: no target).
+    ideal : (T,) what the evaluation compares the take with (the plan's ideal).
+    rise, fall : (start_s, end_s) of the parts evaluated as forward and backward motion.
+    start_s : when the motion starts (no command before it).  end_s : the take's length.
+    label : the plan's name (A-E) or the file it came from.
+    """
+
+    t_s: np.ndarray
+    r: np.ndarray
+    ideal: np.ndarray
+    rise: tuple[float, float]
+    fall: tuple[float, float]
+    start_s: float
+    end_s: float
+    label: str
+
+    def at(self, t_s: np.ndarray, n_markers: int) -> np.ndarray:
+        """Reference (len(t_s), n_markers) at times t_s (held outside the table)."""
+        t_s = np.asarray(t_s, float)
+        if self.r.ndim == 1:
+            v = np.interp(t_s, self.t_s, self.r)
+            return np.broadcast_to(v[:, None], (t_s.size, n_markers)).copy()
+        idx = np.clip(np.searchsorted(self.t_s, t_s, side="right") - 1, 0, self.t_s.size - 2)
+        lam = np.clip((t_s - self.t_s[idx]) / (self.t_s[idx + 1] - self.t_s[idx]), 0.0, 1.0)
+        return self.r[idx] * (1.0 - lam[:, None]) + self.r[idx + 1] * lam[:, None]
+
+    def with_markers(self, r: np.ndarray) -> "Reference":
+        return Reference(self.t_s, r, self.ideal, self.rise, self.fall, self.start_s, self.end_s,
+                         self.label)
+
+
+def plan_reference(plan: str, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002) -> Reference:
+    """The ideal of plan A-E (rest, P rising, hold, 1 - P, rest), as :meth:`PlanTiming.ideal`,
+    except that the hold is the full motion 1 (plans B and D end their rise at 0.993; the
+    evaluation normalises each marker by its largest displacement, which is the hold's)."""
+    if plan.upper() not in PLAN_NAMES:
+        raise ValueError(f"motion plan: expected one of {', '.join(PLAN_NAMES)}, got {plan!r}")
+    t = np.arange(0.0, timing.total_s + dt_s, dt_s)
+    back = timing.start_s + timing.duration_s + timing.hold_s
+    ideal = timing.ideal(t, plan.upper())
+    r = np.where((t >= timing.start_s + timing.duration_s) & (t < back), 1.0, ideal)
+    return Reference(t, r, ideal,
+                     (timing.start_s, timing.start_s + timing.duration_s),
+                     (back, back + timing.duration_s), timing.start_s, timing.total_s, plan.upper())
+
+
+def file_reference(path, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002) -> Reference:
+    """A plan from a CSV with columns time_s (s from the plan's start) and P (0..1).
+
+    The take rests for ``timing.start_s``, follows P(time_s) over the file's span, holds its last
+    value for ``timing.hold_s`` and rests ``timing.tail_s`` more; a file may reverse anywhere
+    (a smile that relaxes half-way and comes back). Forward = the file's span; backward = its
+    second half (where a plan with a return comes back). P is the fraction of the full motion
+    the design aims at; the evaluation compares the take, normalised by its own largest
+    displacement, with P / max(P).
+    """
+    df = pd.read_csv(path)
+    missing = {"time_s", "P"} - set(df.columns)
+    if missing:
+        raise ValueError(f"{path}: expected columns time_s,P; missing {sorted(missing)}")
+    ts = df["time_s"].to_numpy(float)
+    p = df["P"].to_numpy(float)
+    if ts.size < 2 or not np.all(np.diff(ts) > 0):
+        raise ValueError(f"{path}: expected at least two rows with increasing time_s")
+    bad = np.flatnonzero(~np.isfinite(p) | (p < 0) | (p > 1))
+    if bad.size:
+        raise ValueError(f"{path}: row {int(bad[0]) + 2}: expected P in 0..1, got {p[bad[0]]}")
+    span = float(ts[-1] - ts[0])
+    end = timing.start_s + span + timing.hold_s + timing.tail_s
+    t = np.arange(0.0, end + dt_s, dt_s)
+    r = np.where(t < timing.start_s, 0.0, np.interp(t - timing.start_s + ts[0], ts, p))
+    mid = timing.start_s + 0.5 * span
+    ideal = r / max(float(p.max()), 1e-9)
+    return Reference(t, r, ideal, (timing.start_s, timing.start_s + span), (mid, timing.start_s + span),
+                     timing.start_s, end, str(path))
+
+
+def command_times(ref: Reference, step_s: float, fall_start_s: float | None = None) -> np.ndarray:
+    """Row times (s) of a designed command file: 0, then one row every ``step_s`` from the
+    motion's start to the take's end; with ``fall_start_s`` (the paper's return) a second grid
+    starts there, so the return is commanded on its own steps (no gap shorter than ``step_s``)."""
+    if step_s <= 0:
+        raise ValueError(f"design: expected a step time > 0 s, got {step_s}")
+    eps = 1e-9
+    if fall_start_s is None:
+        grid = ref.start_s + step_s * np.arange(int(np.floor((ref.end_s - ref.start_s) / step_s + eps)))
+    else:
+        n1 = int(np.floor((fall_start_s - ref.start_s) / step_s + eps))
+        g1 = ref.start_s + step_s * np.arange(n1)
+        g1 = g1[g1 <= fall_start_s - step_s + eps]
+        n2 = int(np.floor((ref.end_s - fall_start_s) / step_s + eps))
+        grid = np.concatenate([g1, fall_start_s + step_s * np.arange(n2)])
+    return np.concatenate([[0.0], grid[grid > eps]])
+
+
+# ----------------------------------------------------------------------------------------------
+# the model as a stepped plant
+
+
+@dataclass(frozen=True)
+class DuPlant:
+    """One DU of a face model, ready to be stepped.
+
+    markers : (Ma,) indices of the markers it moves.  halfwidths : (Ma, 5) play half-widths,
+    command units.  alpha, beta : (Ma,) its logistic (beta with the trial's bias shift).
+    tau_s : actuator lag (0: none).  backlash : dead band half-width, command units (0: none).
+    """
+
+    du: int
+    markers: np.ndarray
+    halfwidths: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    tau_s: float
+    backlash: float
+
+
+@dataclass
+class PlantState:
+    """State of one DU: actuator (lag) output a, backlash output b, plays (Ma, 5) (command units)."""
+
+    a: float
+    b: float
+    plays: np.ndarray
+
+
+def plants(model: FaceModel, dus, trial: int = 1) -> list[DuPlant]:
+    """The stepped plants of ``dus`` (each must be a DU of the model)."""
+    unknown = [d for d in dus if d not in model.du_ids]
+    if unknown:
+        raise ValueError(f"design: the face model has no DUs {unknown} (it has {list(model.du_ids)})")
+    lag = model.effect("lag")
+    bl = model.effect("backlash")
+    shift = float(np.mean(model.bias_shift(trial)))
+    out = []
+    for du in dus:
+        n = model.du_ids.index(du)
+        act = np.flatnonzero(model.active[n])
+        out.append(DuPlant(int(du), act, model.r[n, act, None] * PLAY_FRACTIONS[None],
+                           model.alpha[n, act], model.beta[n, act] + shift,
+                           float(lag.value) if lag is not None else 0.0,
+                           float(bl.value) if bl is not None else 0.0))
+    return out
+
+
+def rest_state(p: DuPlant) -> PlantState:
+    return PlantState(0.0, 0.0, np.zeros_like(p.halfwidths))
+
+
+def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np.ndarray,
+                   fractions: np.ndarray = SUBSTEPS):
+    """Candidate command sequences over consecutive steps, from ``state``.
+
+    Parameters
+    ----------
+    c : (C,) candidate commands held over every step, or (C, H) one command per step
+        (command units).
+    durations_s : (H,) the steps' durations, s.
+    fractions : (J,) increasing points inside each step (fractions of its duration, at most 1).
+
+    Returns
+    -------
+    y : (C, H * J, Ma) normalised responses at the points.
+    end : the state after the first step, (a (C,), b (C,), plays (C, Ma, 5)).
+    """
+    durations_s = np.asarray(durations_s, float)
+    H = durations_s.size
+    c = np.asarray(c, float)
+    c = np.broadcast_to(c[:, None], (c.size, H)) if c.ndim == 1 else c
+    C = c.shape[0]
+    a0 = np.full(C, state.a)
+    b0 = np.full(C, state.b)
+    pl0 = np.broadcast_to(state.plays, (C,) + state.plays.shape)
+    hw = p.halfwidths[None]
+    fr = np.asarray(fractions, float)
+    J = fr.size
+    if fr[-1] != 1.0:  # the state carries over from the step's end
+        fr = np.append(fr, 1.0)
+    ys, first = [], None
+    for h in range(H):
+        ch = c[:, h]
+        s = fr * durations_s[h]  # (J,) or (J + 1,)
+        if p.tau_s > 0:
+            a = ch[:, None] + (a0 - ch)[:, None] * np.exp(-s / p.tau_s)[None]  # (C, J)
+        else:
+            a = np.broadcast_to(ch[:, None], (C, s.size))
+        b = np.clip(b0[:, None], a - p.backlash, a + p.backlash) if p.backlash > 0 else a
+        plays = np.clip(pl0[:, None], b[..., None, None] - hw[:, None], b[..., None, None] + hw[:, None])
+        ys.append(normalized_logistic(plays[:, :J].mean(axis=-1), p.alpha, p.beta))  # (C, J, Ma)
+        a0, b0, pl0 = a[:, -1].copy(), b[:, -1].copy(), plays[:, -1]
+        if h == 0:
+            first = (a0, b0, pl0)
+    return np.concatenate(ys, axis=1), first
+
+
+def responses_of(model: FaceModel, plist: list[DuPlant], ys: list[np.ndarray]) -> np.ndarray:
+    """Stack per-DU responses [(S, Ma_n)] into y (S, N, M) of the model's markers."""
+    S = ys[0].shape[0]
+    y = np.zeros((S, len(plist), len(model.marker_names)))
+    for n, (p, yn) in enumerate(zip(plist, ys)):
+        y[:, n, p.markers] = yn
+    return y
+
+
+def full_scale(model: FaceModel, plist: list[DuPlant], hold_s: float = 2.0,
+               headroom: float = 0.0) -> np.ndarray:
+    """|d_m| (M,) mm with every DU risen from rest to 255 - ``headroom`` and held ``hold_s``:
+    the displacement the design calls 1 (the full motion)."""
+    top = np.array([255.0 - headroom])
+    ys = [simulate_steps(p, rest_state(p), top, np.array([hold_s]))[0][0, -1:]
+          for p in plist]
+    d = model.displacement_from_response(responses_of(model, plist, ys), [p.du for p in plist])
+    return np.linalg.norm(d[0], axis=-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# weights
+
+
+def marker_weights(model: FaceModel, dus, markers=None, min_scale_mm: float = 0.05,
+                   trial: int = 1) -> np.ndarray:
+    """Weights (M,) of the model's markers in the design's cost.
+
+    markers : None (every marker the DUs move by at least ``min_scale_mm`` at full command), a
+        sequence of marker names, or ``("near", NAME, RADIUS_MM)``: the markers within RADIUS_MM
+        of NAME at rest (a region). Markers that move less than ``min_scale_mm`` get weight 0
+        (their normalised displacement is noise).
+    """
+    scale = full_scale(model, plants(model, dus, trial))
+    w = (scale >= min_scale_mm).astype(float)
+    names = list(model.marker_names)
+    if markers is None:
+        pass
+    elif isinstance(markers, tuple) and len(markers) == 3 and markers[0] == "near":
+        _, name, radius = markers
+        if name not in names:
+            raise ValueError(f"design: marker {name!r} is not in the model ({len(names)} markers)")
+        dist = np.linalg.norm(model.rest_mm - model.rest_mm[names.index(name)], axis=-1)
+        w = w * (dist <= float(radius))
+    else:
+        unknown = [m for m in markers if m not in names]
+        if unknown:
+            raise ValueError(f"design: markers {unknown} are not in the model "
+                             f"(it has {names[0]}..{names[-1]})")
+        sel = np.zeros(len(names))
+        sel[[names.index(m) for m in markers]] = 1.0
+        w = w * sel
+    if w.sum() == 0:
+        raise ValueError("design: no chosen marker moves with these DUs (nothing to track)")
+    return w / w.sum()
+
+
+# ----------------------------------------------------------------------------------------------
+# the design
+
+
+@dataclass(frozen=True)
+class ModelDesign:
+    """A designed command file and what the model predicts of it.
+
+    rows : FORMAT.md command rows (time_s, du, command), integers 0..255.
+    t_s : (S,) the cost points, s.  predicted : (S, M) the model's normalised displacement there.
+    target : (S, M) the reference there.  cost : the final cost per point (see ``spread_weight``).
+    seconds : time spent.
+    """
+
+    rows: pd.DataFrame
+    t_s: np.ndarray
+    predicted: np.ndarray
+    target: np.ndarray
+    cost: float
+    seconds: float
+
+
+def _candidates(center: int | None) -> np.ndarray:
+    if center is None:
+        return np.unique(np.append(np.arange(0, 256, COARSE), 255))
+    return np.arange(max(center - COARSE + 1, 0), min(center + COARSE, 256))
+
+
+@dataclass
+class _Problem:
+    """Everything a sweep reads (see :func:`design_commands`)."""
+
+    model: FaceModel
+    plist: list
+    dus: list
+    dur: np.ndarray  # (n_rows,) s
+    target: np.ndarray  # (n_rows, J, M)
+    ok: np.ndarray  # (n_rows, J, M) bool
+    w: np.ndarray  # (M,)
+    inv_scale: np.ndarray  # (M,)
+    spread_weight: float
+
+    def cost(self, nd: np.ndarray, tgt: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Cost (C,) of normalised displacements nd (C, Q, M) against tgt (Q, M): the squared
+        weighted mean error over markers plus ``spread_weight`` times the weighted mean square."""
+        wt = self.w[None] * ok  # (Q, M)
+        e = nd - tgt[None]
+        mean_e = np.sum(wt[None] * e, axis=2)
+        return np.sum(mean_e ** 2, axis=1) + self.spread_weight * np.sum(wt[None] * e ** 2, axis=(1, 2))
+
+    def normalised(self, ys: list[np.ndarray]) -> np.ndarray:
+        """|d_m| / n_m (S, M) from per-DU responses [(S, Ma_n)]."""
+        d = self.model.displacement_from_response(responses_of(self.model, self.plist, ys), self.dus)
+        return np.linalg.norm(d, axis=-1) * self.inv_scale
+
+
+def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) -> tuple[np.ndarray, np.ndarray]:
+    """One pass over the steps. Without ``prev`` (the first pass) a candidate is held over
+    ``preview`` steps; with it, step i's candidate is followed by ``prev``'s commands over the
+    next ``horizon - 1`` steps (Gauss-Seidel on the whole tracking cost). Returns the commands
+    (n_rows, N) and the predicted normalised displacement (n_rows, J, M)."""
+    n_rows, J, M = pb.target.shape
+    N = len(pb.plist)
+    states = [rest_state(p) for p in pb.plist]
+    chosen = np.zeros((n_rows, N), int) if prev is None else prev.copy()
+    pred = np.zeros((n_rows, J, M))
+    for i in range(n_rows):
+        H = (preview if prev is None else horizon)
+        h = slice(i, min(i + H, n_rows))
+        nh = h.stop - h.start
+        tgt = pb.target[h].reshape(-1, M)
+        okh = pb.ok[h].reshape(-1, M)
+        if prev is None and i > 0:
+            chosen[i] = chosen[i - 1]
+        for n, p in enumerate(pb.plist):
+            seq = np.broadcast_to(chosen[h], (nh, N)).copy()
+            if prev is None:
+                seq[:] = chosen[i]
+            others = {k: simulate_steps(q, states[k], seq[None, :, k], pb.dur[h])[0][0]
+                      for k, q in enumerate(pb.plist) if k != n}
+            best = None
+            for _ in range(2):
+                cand = _candidates(best)
+                cs = np.repeat(seq[None, :, n], cand.size, axis=0).astype(float)
+                cs[:, 0] = cand
+                if prev is None:
+                    cs[:] = cand[:, None]
+                yc, _ = simulate_steps(p, states[n], cs, pb.dur[h])
+                C, Q = yc.shape[:2]
+                ys = [yc.reshape(C * Q, -1) if k == n else np.tile(others[k], (C, 1))
+                      for k in range(N)]
+                nd = pb.normalised(ys).reshape(C, Q, M)
+                cost = pb.cost(nd, tgt, okh)
+                best = int(cand[int(np.argmin(cost))])
+            chosen[i, n] = best
+        ys_step = []
+        for n, p in enumerate(pb.plist):
+            y1, (a, b, pl) = simulate_steps(p, states[n], np.array([chosen[i, n]]), pb.dur[i:i + 1])
+            states[n] = PlantState(float(a[0]), float(b[0]), pl[0])
+            ys_step.append(y1[0])
+        pred[i] = pb.normalised(ys_step)
+    return chosen, pred
+
+
+def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.016,
+                    fall_start_s: float | None = None, weights: np.ndarray | None = None,
+                    preview: int = 1, horizon: int = 12, sweeps: int = 0,
+                    headroom: float = 24.0, spread_weight: float = 0.05,
+                    trial: int = 1) -> ModelDesign:
+    """Commands of ``dus`` whose model response follows ``ref`` (see the module docstring).
+
+    Parameters
+    ----------
+    model : the identified face model (its effects are all used).
+    ref : the reference (:func:`plan_reference`, :func:`file_reference`, or a refinement's).
+    step_s : the rig's command step, s; one row per step from ``ref.start_s``.
+    fall_start_s : start of the return in the paper's timing (its own step grid), or None.
+    weights : (M,) marker weights (default :func:`marker_weights` of every moving marker).
+    preview : steps over which a candidate is held in the first, causal pass (1: greedy).
+    horizon : steps over which a step's command is scored in the later passes, the following
+        steps keeping the previous pass's commands (a few actuator time constants: this is what
+        lets a command anticipate where a later one saturates at 0 or 255).
+    sweeps : passes after the first (0: the causal design alone).
+    headroom : the full motion (1) is the steady response to 255 - headroom (command units),
+        so that a lagging actuator can still be driven towards it faster than it settles
+        (the logistic is flat there: a few units cost a fraction of a percent of motion).
+    spread_weight : weight of the markers' own errors against the error of their mean (the
+        mean is what follows the plan; the markers' spread around it is partly beyond any
+        command, and with several DUs this term decides how they share the work).
+    trial : the trial the commands are designed for (the ``drift`` effect's bias).
+    """
+    import time
+
+    t0 = time.perf_counter()
+    dus = [int(d) for d in dus]
+    plist = plants(model, dus, trial)
+    M = len(model.marker_names)
+    scale = full_scale(model, plist, headroom=headroom)
+    w = marker_weights(model, dus, trial=trial) if weights is None else np.asarray(weights, float)
+    if w.shape != (M,):
+        raise ValueError(f"design: expected weights of shape ({M},), got {w.shape}")
+    w = np.where(scale > 1e-9, w, 0.0)
+    inv_scale = np.where(scale > 1e-9, 1.0 / np.maximum(scale, 1e-12), 0.0)
+    dead = model.effect("deadtime")
+    delay = float(dead.value) if dead is not None else 0.0
+
+    times = command_times(ref, step_s, fall_start_s)
+    row_t = times[1:]
+    dur = np.diff(np.append(row_t, ref.end_s))
+    n_rows, J = row_t.size, SUBSTEPS.size
+    pts = (row_t[:, None] + SUBSTEPS[None] * dur[:, None]).ravel()  # (n_rows * J,)
+    target = ref.at(pts + delay, M).reshape(n_rows, J, M)
+    ok = np.isfinite(target)
+    pb = _Problem(model, plist, dus, dur, np.where(ok, target, 0.0), ok, w, inv_scale,
+                  spread_weight)
+    chosen, pred = _sweep(pb, None, horizon, preview)
+    for _ in range(sweeps):
+        chosen, pred = _sweep(pb, chosen, horizon, preview)
+    cost = float(pb.cost(pred.reshape(1, -1, M), pb.target.reshape(-1, M), ok.reshape(-1, M))[0]
+                 / max(n_rows * J, 1))
+    frames = [pd.DataFrame({"time_s": np.round(times, 9), "du": du,
+                            "command": np.concatenate([[0], chosen[:, n]]).astype(np.int64)})
+              for n, du in enumerate(dus)]
+    rows = pd.concat(frames, ignore_index=True)
+    return ModelDesign(rows, pts + delay, pred.reshape(-1, M), pb.target.reshape(-1, M), cost,
+                       time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------------------------
+# iterative refinement (iterative learning control on top of the model-based design)
+
+
+def commands_matrix(rows: pd.DataFrame, dus, n_frames: int, fps: float) -> np.ndarray:
+    """Commands (n_frames, n_dus) of ``rows`` at the frames (FORMAT.md sampling)."""
+    from mocap.schedules import sample_commands
+
+    return sample_commands(rows, list(dus), np.arange(n_frames) / fps)
+
+
+def predicted_delta(model: FaceModel, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
+    """The model's normalised displacement (n_frames, M) of a command file, as the evaluation
+    measures it (:func:`analysis.evaluation.realized_delta`)."""
+    from analysis.evaluation import realized_delta
+
+    dus = sorted(int(d) for d in pd.unique(rows["du"]))
+    X = model.predict(rows, n_frames, trial)
+    return realized_delta(X, commands_matrix(rows, dus, n_frames, model.fps))
+
+
+def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised displacement of a measured take without the bias of noise.
+
+    As :func:`analysis.evaluation.realized_delta`, but the length of each displacement is
+    sqrt(max(|d|^2 - 3 s_m^2, 0)), s_m the marker's noise per axis (its standard deviation over
+    the rest frames before the first command change): |d| of pure noise is positive, which
+    would teach a refinement to lag near rest. Noise-free data give realized_delta exactly.
+
+    Returns delta (n_frames, M), the plateau length (M,) mm and the noise s_m (M,) mm.
+    """
+    import warnings
+
+    from analysis.displacement import plateau_level
+
+    change = np.flatnonzero(np.any(np.diff(command, axis=0) != 0, axis=-1))
+    lead = int(change[0]) + 1 if change.size else 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rest = np.nanmean(X[:lead], axis=0)
+        var = np.nanmean(np.nanvar(X[:lead], axis=0), axis=-1) if lead > 2 else np.zeros(X.shape[1])
+    var = np.nan_to_num(var)
+    sq = np.sum((X - rest[None]) ** 2, axis=-1) - 3.0 * var[None]
+    length = np.sqrt(np.clip(sq, 0.0, None))
+    peak = plateau_level(length, smooth_frames)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return length / np.where(peak > 0, peak, np.nan)[None], peak, np.sqrt(var)
+
+
+def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
+                      measured: np.ndarray, measured_names, *, previous: Reference | None = None,
+                      gain: float = 1.0, smooth_frames: int = 7, weights: np.ndarray | None = None,
+                      trial: int = 1) -> Reference:
+    """The next reference of iterative learning control from a played take.
+
+    Parameters
+    ----------
+    plan_ref : the plan (what the markers should do).
+    rows : the commands that were played.  measured : (n_frames, M') marker positions (mm) of
+        the played take at the model's frame rate, NaN where missing; measured_names : (M',).
+        Its normalised displacement is read without the bias of noise (:func:`debiased_delta`).
+    previous : the reference those commands were designed for (per marker or not); without it
+        the model's own prediction of ``rows`` stands for it.
+    gain : learning gain (1: the whole error at once).
+    smooth_frames : moving-average window of the error (frames; measurement noise).
+    weights : (M,) marker weights of the design (default :func:`marker_weights`), times each
+        marker's signal-to-noise factor s^2 / (s^2 + (20 noise)^2) (s its measured plateau).
+
+    Returns the reference r_{k+1}(t) = r_k(t) + gain sum_m w_m (P(t) - delta_m(t)) over the
+    plan's rise and fall (elsewhere r_k), on the take's frames. The markers' weighted mean error
+    is learnt, not each marker's: the mean is what a command can move, while a marker whose
+    normalised displacement cannot follow the plan (pulled two ways by two DUs) would wind its
+    own reference up without end.
+    """
+
+    names = list(model.marker_names)
+    n_frames = measured.shape[0]
+    if measured.ndim != 3 or measured.shape[1] != len(measured_names):
+        raise ValueError(f"refine: expected measured positions (n_frames, {len(measured_names)}, 3), "
+                         f"got {measured.shape}")
+    dus = sorted(int(d) for d in pd.unique(rows["du"]))
+    delta_meas, peak_meas, noise_meas = debiased_delta(
+        measured, commands_matrix(rows, dus, n_frames, model.fps))
+    M = len(names)
+    delta = np.full((n_frames, M), np.nan)
+    snr = np.zeros(M)
+    pos = {n: i for i, n in enumerate(measured_names)}
+    for m, n in enumerate(names):
+        if n in pos:
+            delta[:, m] = delta_meas[:, pos[n]]
+            s2 = np.nan_to_num(peak_meas[pos[n]]) ** 2
+            snr[m] = s2 / max(s2 + (SNR_NOISE * noise_meas[pos[n]]) ** 2, 1e-300) if s2 > 0 else 0.0
+    t = np.arange(n_frames) / model.fps
+    err = plan_ref.at(t, M) - delta
+    if smooth_frames > 1:
+        from scipy.ndimage import uniform_filter1d
+
+        ok = np.isfinite(err)
+        num = uniform_filter1d(np.where(ok, err, 0.0), smooth_frames, axis=0, mode="nearest")
+        cnt = uniform_filter1d(ok * 1.0, smooth_frames, axis=0, mode="nearest")
+        err = np.where(cnt > 0, num / np.maximum(cnt, 1e-12), np.nan)
+    # only the evaluated parts learn: the hold and the rests anchor the scale (the normalised
+    # displacement divides by the take's own plateau, so an error there cannot be corrected and
+    # learning it would drift the whole motion's scale)
+    learn = ((t >= plan_ref.rise[0]) & (t < plan_ref.rise[1])) | \
+        ((t >= plan_ref.fall[0]) & (t < plan_ref.fall[1]))
+    w = marker_weights(model, dus, trial=trial) if weights is None else np.asarray(weights, float)
+    w = w * snr  # markers that barely move above the noise teach little
+    ok = np.isfinite(err) & (w[None] > 0)
+    e_mean = np.sum(np.where(ok, err, 0.0) * w[None], axis=1) / np.maximum(
+        np.sum(ok * w[None], axis=1), 1e-12)
+    e_mean = np.where(learn & ok.any(axis=1), e_mean, 0.0)
+    if previous is not None:
+        r_prev = previous.at(t, M)
+    else:
+        r_prev = predicted_delta(model, rows, n_frames, trial)
+    r_new = r_prev + gain * (e_mean[:, None] if r_prev.ndim == 2 else e_mean)
+    # before the motion starts nothing is asked; the reference stays a normalised displacement
+    r_new[t < plan_ref.start_s] = 0.0
+    ideal = np.interp(t, plan_ref.t_s, plan_ref.ideal)
+    return Reference(t, np.clip(r_new, -0.5, 1.5), ideal, plan_ref.rise, plan_ref.fall,
+                     plan_ref.start_s, plan_ref.end_s, plan_ref.label)
+
+
+# ----------------------------------------------------------------------------------------------
+# evaluation
+
+
+def evaluate_design(X: np.ndarray, rows: pd.DataFrame, fps: float, ref: Reference,
+                    keep: np.ndarray | None = None):
+    """A played (or predicted) take of a design against its plan, as 'mocap run' evaluates
+    motions (:func:`analysis.evaluation.evaluate_motion`): X (n_frames, M, 3) mm, markers
+    ``keep`` (default all) that move at least 0.05 mm; forward = ``ref.rise``, backward =
+    ``ref.fall``. Returns a :class:`analysis.evaluation.MotionEvaluation`."""
+    from analysis.evaluation import evaluate_motion, realized_delta
+
+    n, M = X.shape[:2]
+    dus = sorted(int(d) for d in pd.unique(rows["du"]))
+    cmd = commands_matrix(rows, dus, n, fps)
+    delta = realized_delta(X, cmd)
+    t = np.arange(n) / fps
+    ideal = np.interp(t, ref.t_s, ref.ideal)
+    f0 = int(round(ref.start_s * fps))
+    with np.errstate(invalid="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            peak = np.nanmax(np.linalg.norm(X - np.nanmean(X[: max(f0, 1)], axis=0)[None], axis=-1),
+                             axis=0)
+    k = (np.ones(M, bool) if keep is None else np.asarray(keep, bool)) & (peak >= 0.05)
+
+    def window(a_b):
+        return slice(int(round(a_b[0] * fps)), min(int(round(a_b[1] * fps)), n))
+
+    return evaluate_motion(delta, ideal, fps, window(ref.rise), window(ref.fall), k)

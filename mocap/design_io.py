@@ -1,0 +1,161 @@
+"""What ``mocap design --method model`` reads and writes: the identified face model of a session,
+a design's reference, the played take of a refinement, and the closed-loop check on the virtual
+face of a simulated session.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from analysis.face_model import FaceModel
+from analysis.model_design import Reference
+from mocap.session import SessionError
+
+
+def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[FaceModel, str]:
+    """The identified face model of a session or a `mocap run` output folder.
+
+    effects : None runs the discrepancy workflow (the paper's model plus every effect it names);
+        a list of effect names fits exactly those (``hysteresis`` and ``curvature`` per curve,
+        the others' global parameters by their profiles, in the order given).
+
+    Returns (model, how it was identified).
+    """
+    from analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy
+    from analysis.model_effects import CATALOGUE
+    from analysis.model_fit import fit_curves, profile_effect
+    from mocap.discrepancy_input import load_measured
+
+    say = progress or (lambda m: None)
+    ms = load_measured(path, progress=say)
+    settings = DiscrepancySettings(jobs=jobs)
+    prep = prepare(ms.session.fps, ms.marker_names, ms.rest_mm, ms.takes, ms.rest_X, settings)
+    if effects is None:
+        res = run_discrepancy(prep, settings, progress=say)
+        named = ", ".join(res.named) or "no missing effect"
+        return res.final_model, f"discrepancy workflow on {ms.source} (named: {named})"
+    names = list(effects)
+    bad = [n for n in names if n not in CATALOGUE]
+    if bad:
+        raise ValueError(f"--effects: unknown {', '.join(bad)} (known: {', '.join(CATALOGUE)})")
+    data = prep.data
+    takes = list(range(len(data.takes)))
+    per_curve = [CATALOGUE[n]() for n in names if CATALOGUE[n].per_curve]
+    model = fit_curves(data, tuple(per_curve), takes)
+    for n in names:
+        if not CATALOGUE[n].per_curve:
+            model = profile_effect(data, model, CATALOGUE[n](), takes).model
+            say(f"  {n}: {model.effect(n).describe()['value']:.4g} {CATALOGUE[n].unit}")
+    return model, f"effects {', '.join(names)} fitted on {ms.source}"
+
+
+@dataclass(frozen=True)
+class PlayedTake:
+    """A played take: its commands, its measured positions (n_frames, M, 3) mm and marker names."""
+
+    name: str
+    rows: pd.DataFrame
+    X: np.ndarray
+    marker_names: tuple[str, ...]
+    fps: float
+
+
+def played_take(path, take: str) -> PlayedTake:
+    """Take ``take`` of a session or a `mocap run` output folder (SessionError names what is missing)."""
+    from mocap.discrepancy_input import load_measured
+
+    ms = load_measured(path)
+    for t in ms.takes:
+        if t.name == take:
+            return PlayedTake(t.name, t.rows, t.X, ms.marker_names, ms.session.fps)
+    raise SessionError(f"{path}: no commanded take {take!r} (takes: "
+                       f"{', '.join(t.name for t in ms.takes)})")
+
+
+def reference_path(commands_path) -> Path:
+    """Where a design's reference is written next to its command file (``X.csv`` -> ``X.reference.csv``)."""
+    p = Path(commands_path)
+    return p.with_name(p.stem + ".reference.csv")
+
+
+def write_reference(path, ref: Reference, marker_names) -> Path:
+    """The reference as CSV: time_s and one column per marker (or a single column P)."""
+    from mocap.atomic import write_csv
+
+    cols = {"time_s": ref.t_s}
+    if ref.r.ndim == 1:
+        cols["P"] = ref.r
+    else:
+        cols.update({str(n): ref.r[:, m] for m, n in enumerate(marker_names)})
+    write_csv(pd.DataFrame(cols), path, decimals=6)
+    return Path(path)
+
+
+def read_reference(path, plan_ref: Reference, marker_names) -> Reference:
+    """A reference written by :func:`write_reference`, with ``plan_ref``'s windows."""
+    df = pd.read_csv(path)
+    if "time_s" not in df.columns:
+        raise ValueError(f"{path}: expected a time_s column (a design's .reference.csv)")
+    t = df["time_s"].to_numpy(float)
+    if "P" in df.columns:
+        r = df["P"].to_numpy(float)
+    else:
+        missing = [n for n in marker_names if n not in df.columns]
+        if len(missing) == len(marker_names):
+            raise ValueError(f"{path}: none of the model's markers is a column")
+        r = np.column_stack([df[n].to_numpy(float) if n in df.columns else np.full(t.size, np.nan)
+                             for n in marker_names])
+    return Reference(t, r, np.interp(t, plan_ref.t_s, plan_ref.ideal), plan_ref.rise,
+                     plan_ref.fall, plan_ref.start_s, plan_ref.end_s, plan_ref.label)
+
+
+# ----------------------------------------------------------------------------------------------
+# closed loop on the virtual face
+
+
+def virtual_face_of(path):
+    """(SimConfig, VirtualFace) of a simulated session (its truth/truth.json next to session/),
+    or None for a real one. ``path``: the session folder, its parent, or a `mocap run` output."""
+    from mocap.simulate import preset
+    from mocap.simulate.effects import make_effect
+    from mocap.simulate.session_writer import virtual_rig_and_face
+
+    p = Path(path)
+    if (p / "summary.json").is_file():
+        sdir = json.loads((p / "summary.json").read_text()).get("session", {}).get("dir", "")
+        p = Path(sdir) if sdir else p
+    for cand in (p / "truth" / "truth.json", p.parent / "truth" / "truth.json"):
+        if cand.is_file():
+            info = json.loads(cand.read_text())
+            c = info["config"]
+            eff = info.get("effect", {})
+            if "effects" in eff:
+                names = [e["name"] for e in eff["effects"]]
+                strengths = [e["strength"] for e in eff["effects"]]
+            else:
+                names, strengths = [eff.get("name", "none")], [eff.get("strength", 0.0)]
+            effect = make_effect(names, strengths if names != ["none"] else None)
+            cfg = preset(c["preset"], seed=c["seed"], du_ids=tuple(c["du_ids"]),
+                         n_markers=c["n_markers"], n_trials=c["n_trials"],
+                         n_cameras=c.get("n_cameras"), fps=c["fps"], effect=effect)
+            return cfg, virtual_rig_and_face(cfg)[2]
+    return None
+
+
+def play_virtual(cfg, face, rows: pd.DataFrame, duration_s: float, noise_mm: float = 0.0,
+                 seed: int = 0) -> np.ndarray:
+    """Marker positions (n_frames, M, 3) mm of ``rows`` played on the virtual face with its hidden
+    effect; noise-free, or with the trial variation and ``noise_mm`` of measurement noise."""
+    from mocap.simulate.motion import true_positions
+
+    n = int(round(duration_s * cfg.fps))
+    rng = np.random.default_rng(seed) if noise_mm > 0 else None
+    X = true_positions(face, cfg.effect, rows, n, cfg.fps, 1, rng)
+    if rng is not None:
+        X = X + rng.normal(0.0, noise_mm, X.shape)
+    return X
