@@ -128,7 +128,6 @@ def test_model_design_beats_the_paper_on_a_lagging_face(lag_face):
         paper = paper_design(plan, lag_face.responses, TIMING, DUS)
         des = design_commands(lag_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
         assert_valid_command_file(des.rows, TIMING.step_s)
-        assert des.seconds < 20
         _, ev_p = lag_face.play(paper, ref)
         _, ev_m = lag_face.play(des.rows, ref)
         assert rms(ev_m) <= rms(ev_p) / 3, (plan, rms(ev_m), rms(ev_p))
