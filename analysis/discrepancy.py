@@ -183,6 +183,9 @@ def prepare(fps: float, marker_names, rest_mm: np.ndarray, takes: list[TakeData]
     if not np.isfinite(floor):
         floor, per = rest_noise(rest_X)
         source = "rest take"
+    if not np.isfinite(floor) or floor <= 0:
+        raise ValueError("discrepancy: the noise floor cannot be measured: no command schedule was "
+                         "played in two or more trials and there is no rest take")
     M = len(marker_names)
     used = np.ones(M, bool)
     if per.size == M and np.isfinite(per).any():
@@ -425,6 +428,7 @@ class Step:
     heldout_rms_after_mm: float
     evidence: list[dict]
     explained: float
+    per_du: dict = field(default_factory=dict)  # DU id -> the parameter from its own takes
 
 
 @dataclass
@@ -593,6 +597,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                 se = se / prof.best ** 2  # 1/L -> L
             params = {cls.parameter: float(v)}
             unc = {cls.parameter: float(se)}
+        per_du = per_du_values(data, model, name) if cls.affects_curves and not cls.per_curve else {}
         say(f"  {name} on all takes: {time.perf_counter() - t_c:.1f} s")
         before = current.rms_mm
         current = fits[name]
@@ -601,13 +606,29 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         stage_models.append(model)
         named.append(name)
         stages.append(_stage(data, current, res, floor, "+".join(settings.base + tuple(named))))
-        steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"]))
+        steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
+                          per_du))
         say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")
     return DiscrepancyResult(named=named, steps=steps, noise_floor_mm=floor,
                              noise_source=prep.noise_source, base_effects=tuple(settings.base),
                              untestable=untestable, stages=stages, final_model=stage_models[-1],
                              final_evidence=evidence, excluded_markers=prep.excluded,
                              heldout_residuals=residual_sets, models_by_stage=stage_models)
+
+
+def per_du_values(data: ModelData, model: FaceModel, name: str) -> dict[int, float]:
+    """A named global effect's parameter identified again from each DU's own single-DU takes
+    (the model shares one value; a robot's actuators may differ): DU id -> value, in the
+    effect's reported unit."""
+    cls = CATALOGUE[name]
+    out = {}
+    for du in data.du_ids:
+        takes = [k for k, t in enumerate(data.takes) if t.dus == (du,)]
+        if not takes:
+            continue
+        prof = profile_effect(data, model, cls(), takes)
+        out[int(du)] = float(prof.model.effect(name).describe()["value"])
+    return out
 
 
 def worst_marker(residual: np.ndarray, used: np.ndarray) -> tuple[int, np.ndarray]:

@@ -43,6 +43,7 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
             "meaning": CATALOGUE[s.effect].meaning,
             "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
+            "per_du": {str(du): _r(v, 6) for du, v in s.per_du.items()},
             "heldout_rms_before_mm": _r(s.heldout_rms_before_mm),
             "heldout_rms_after_mm": _r(s.heldout_rms_after_mm),
             "noise_floor_mm": _r(floor),
@@ -127,6 +128,9 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
                 for k, v in s.parameters.items()) +
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
+            if s.per_du:
+                L += ["", "Per DU, from each DU's own takes: " + ", ".join(
+                    f"DU {du}: {v:.4g}" for du, v in s.per_du.items()) + f" {unit}."]
     if not res.steps or res.final_evidence is not res.steps[-1].evidence:
         L += ["", "## Last candidates (none named)", "",
               "| effect | held-out RMS (mm) | score | explains | fold estimates | |",

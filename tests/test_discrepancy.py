@@ -155,6 +155,14 @@ def test_schedule_summary_says_what_can_be_tested():
     assert not any(CATALOGUE[n]().untestable(s2) for n in CATALOGUE)
 
 
+def test_no_noise_floor_is_a_clear_error():
+    rows = trapezoid(1)
+    X = np.zeros((620, 3, 3))
+    takes = [TakeData("t1", "response", 1, (1,), rows, X, "g")]
+    with pytest.raises(ValueError, match="noise floor cannot be measured"):
+        prepare(FPS, ["a", "b", "c"], np.zeros((3, 3)), takes, rest_X=None)
+
+
 def test_trial_noise_ignores_a_linear_drift_across_trials():
     rng = np.random.default_rng(3)
     base = np.cumsum(rng.normal(0, 0.1, (300, 5, 3)), axis=0)
@@ -210,6 +218,10 @@ def test_workflow_names_a_single_hidden_effect(tmp_path_factory, effect):
     assert _gap_shrink(step["heldout_rms_before_mm"], step["heldout_rms_after_mm"], floor) >= 0.6
     assert doc["final_heldout_rms_mm"] <= 1.5 * floor
     assert doc["named"] == [effect]  # nothing else is named
+    if effect in ("lag", "deadtime", "backlash", "drift", "saturation"):  # one value, every DU
+        per_du = step["per_du"]
+        assert set(per_du) == {"1", "4", "7", "12"}
+        assert all(v == pytest.approx(truth[param], rel=0.25) for v in per_du.values()), per_du
 
 
 def test_workflow_names_nothing_without_a_hidden_effect(tmp_path_factory):
