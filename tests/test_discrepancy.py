@@ -268,7 +268,7 @@ def test_untestable_effects_are_reported_not_named(tmp_path_factory):
     assert "coupling: not testable" in md
 
 
-def test_cli_on_a_raw_session_writes_every_output(tmp_path_factory):
+def test_cli_on_a_raw_session_writes_every_output(tmp_path_factory, monkeypatch, capsys):
     """A raw (2D) session with a hidden dead time, through `mocap discrepancy`: reconstruction,
     the workflow, discrepancy.json/md, figures and the Rerun recording."""
     from mocap.cli import main
@@ -304,6 +304,11 @@ def test_cli_on_a_raw_session_writes_every_output(tmp_path_factory):
               f"/discrepancy/{worst}/model_1", f"/plots/discrepancy/{worst}",
               "/charts/heldout_rms_mm", "/annotations/discrepancy"):
         assert rows[p] > 0, p
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    capsys.readouterr()
+    assert main(["replay", str(out)]) == 0  # the output folder opens in the viewer
+    assert "rerun discrepancy.rrd" in capsys.readouterr().out
 
 
 def test_cli_reports_a_bad_input_clearly(tmp_path, capsys):

@@ -15,7 +15,8 @@ cross-validation over takes), localise where the residuals exceed the measuremen
 deadtime, backlash, coupling, drift, saturation, curvature), name the one that explains the gap on
 held-out takes (BIC margin 10) with its parameter and uncertainty, add it and repeat until nothing
 significant is left. Says which effects the takes cannot test (e.g. coupling without multi-DU
-takes). Writes OUT/discrepancy.json, discrepancy.md, figures/ and discrepancy.rrd (Rerun).
+takes). Writes OUT/discrepancy.json, discrepancy.md, figures/ and discrepancy.rrd (Rerun; open
+it with 'mocap replay OUT').
 
 A raw (2D) session is reconstructed first (into OUT/reconstruction); a labeled session or a
 'mocap run' output folder is read directly.

@@ -21,11 +21,14 @@ example:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("out_dir", type=Path, help="a 'mocap run' output folder (or an .rrd file)")
+    p.add_argument("out_dir", type=Path,
+                   help="a 'mocap run' or 'mocap discrepancy' output folder (or an .rrd file)")
 
 
 def run(args: argparse.Namespace) -> int:
     rrd = args.out_dir if args.out_dir.suffix == ".rrd" else args.out_dir / "session.rrd"
+    if not rrd.is_file() and (args.out_dir / "discrepancy.rrd").is_file():
+        rrd = args.out_dir / "discrepancy.rrd"  # a 'mocap discrepancy' output folder
     if not rrd.is_file():
         print(f"error: {rrd}: no recording (run 'mocap run SESSION --out {args.out_dir}' without "
               "--no-rrd first)", file=sys.stderr)
