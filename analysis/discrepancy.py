@@ -167,6 +167,7 @@ class Prepared:
     per_marker_noise_mm: np.ndarray
     excluded: list[str]
     schedules: ScheduleSummary
+    phase_labels: list[np.ndarray]  # per take, the phase (index into PHASES) of each sample
 
 
 def prepare(fps: float, marker_names, rest_mm: np.ndarray, takes: list[TakeData],
@@ -214,7 +215,8 @@ def prepare(fps: float, marker_names, rest_mm: np.ndarray, takes: list[TakeData]
                      du_ids=du_ids, used=used, active=active, strong=strong, stride=stride)
     summary = summarize_schedules([(t.rows, t.trial, t.group) for t in takes], fps)
     excluded = [str(marker_names[i]) for i in np.flatnonzero(~used)]
-    return Prepared(data, floor, source, per, excluded, summary)
+    labels = [phases(t, data.samples(k), fps) for k, t in enumerate(takes)]
+    return Prepared(data, floor, source, per, excluded, summary, labels)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -453,9 +455,11 @@ class DiscrepancyResult:
         return self.stages[-1]["heldout_rms_mm"]
 
 
-def _gap_tables(data: ModelData, residuals: list[np.ndarray], floor: float) -> dict:
-    """Held-out residual RMS (mm and / noise floor) per take, DU set, marker and phase."""
-    per_take, per_set, per_phase = {}, {}, {}
+def _gap_tables(data: ModelData, residuals: list[np.ndarray], floor: float,
+                phase_labels: list[np.ndarray]) -> dict:
+    """Held-out residual RMS (mm and / noise floor) per take, DU set, marker, phase, and per
+    take and phase (``take_phases``: take -> phase -> ratio to the noise floor)."""
+    per_take, per_set, per_phase, take_phases = {}, {}, {}, {}
     M = len(data.marker_names)
     m_ss = np.zeros(M)
     m_n = np.zeros(M)
@@ -472,11 +476,15 @@ def _gap_tables(data: ModelData, residuals: list[np.ndarray], floor: float) -> d
         acc[1] += int(ok.sum())
         m_ss += np.nansum(sq, axis=0)
         m_n += ok.sum(axis=0)
-        ph = phases(t, data.samples(k), data.fps)
+        ph = phase_labels[k]
+        take_phases[t.name] = {}
         for p in np.unique(ph):
             sel = ok & (ph == p)[:, None]
-            ph_acc[p, 0] += float(np.sum(np.where(sel, sq, 0.0)))
-            ph_acc[p, 1] += int(sel.sum())
+            ss_p, n_p = float(np.sum(np.where(sel, sq, 0.0))), int(sel.sum())
+            ph_acc[p, 0] += ss_p
+            ph_acc[p, 1] += n_p
+            if n_p and floor > 0:
+                take_phases[t.name][PHASES[p]] = round(float(np.sqrt(ss_p / n_p) / floor), 3)
     for key, (s, n) in set_acc.items():
         per_set[key] = float(np.sqrt(s / max(n, 1)))
     for p, name in enumerate(PHASES):
@@ -490,13 +498,14 @@ def _gap_tables(data: ModelData, residuals: list[np.ndarray], floor: float) -> d
                 for k, v in d.items()}
 
     return {"takes": ratio(per_take), "dus": ratio(per_set), "phases": ratio(per_phase),
+            "take_phases": take_phases,
             "markers": {str(data.marker_names[m]): {"rms_mm": round(float(per_marker[m]), 5),
                                                     "ratio": round(float(per_marker[m] / floor), 3)}
                         for m in range(M) if data.used[m] and np.isfinite(per_marker[m])}}
 
 
-def _stage(data, cv: CVFit, residuals, floor, label) -> dict:
-    tables = _gap_tables(data, residuals, floor)
+def _stage(data, cv: CVFit, residuals, floor, label, phase_labels) -> dict:
+    tables = _gap_tables(data, residuals, floor, phase_labels)
     return {"model": label, "heldout_rms_mm": cv.rms_mm,
             "ratio_to_noise": cv.rms_mm / floor if floor > 0 else None, **tables}
 
@@ -510,7 +519,8 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     effects = make_effects(settings.base)
     current = cv_base(data, effects)
     s, n, res = heldout(data, current.models)
-    stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static")]
+    stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
+                     prep.phase_labels)]
     residual_sets = [res]
     stage_models = [fit_curves(data, effects, list(range(len(data.takes))))]
     say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
@@ -605,7 +615,8 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         residual_sets.append(res)
         stage_models.append(model)
         named.append(name)
-        stages.append(_stage(data, current, res, floor, "+".join(settings.base + tuple(named))))
+        stages.append(_stage(data, current, res, floor, "+".join(settings.base + tuple(named)),
+                             prep.phase_labels))
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
                           per_du))
         say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")

@@ -29,21 +29,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
+from analysis.hysteresis_fit import PLAY_FRACTIONS
 from analysis.model_effects import CATALOGUE, Effect
 from analysis.play_kernel import pi_logistic_from_table, play_table
 from mocap.schedules import sample_commands
 
 OVERSAMPLE = 4
-PLAY_FRACTIONS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
 R_MAX = 48.0  # largest play width r, command units (the table holds half-widths up to 2 r)
-
-
-def normalized_logistic(w: np.ndarray, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """y = (S(w) - S(0)) / (S(255) - S(0)), S(w) = 1 / (1 + exp(-alpha (w - beta))); broadcasts."""
-    lo = 1.0 / (1.0 + np.exp(np.clip(alpha * beta, -700, 700)))
-    hi = 1.0 / (1.0 + np.exp(np.clip(-alpha * (255.0 - beta), -700, 700)))
-    s = 1.0 / (1.0 + np.exp(np.clip(-alpha * (w - beta), -700, 700)))
-    return (s - lo) / np.maximum(hi - lo, 1e-12)
 
 
 def actuator_effects(effects) -> list[Effect]:

@@ -41,10 +41,15 @@ def pi_logistic(c: np.ndarray, alpha, beta, r) -> np.ndarray:
     thr = r[:, None] * PLAY_FRACTIONS  # (n_curves, n_plays)
     w = play(np.broadcast_to(c[..., None], (c.shape[0], alpha.size, PLAY_FRACTIONS.size)), thr,
              0.0).mean(axis=-1)
-    lo = 1.0 / (1.0 + np.exp(alpha * beta))
-    hi = 1.0 / (1.0 + np.exp(-alpha * (255.0 - beta)))
+    return normalized_logistic(w, alpha, beta)
+
+
+def normalized_logistic(w: np.ndarray, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """y = (S(w) - S(0)) / (S(255) - S(0)), S(w) = 1 / (1 + exp(-alpha (w - beta))); broadcasts."""
+    lo = 1.0 / (1.0 + np.exp(np.clip(alpha * beta, -700, 700)))
+    hi = 1.0 / (1.0 + np.exp(np.clip(-alpha * (255.0 - beta), -700, 700)))
     s = 1.0 / (1.0 + np.exp(np.clip(-alpha * (w - beta), -700, 700)))
-    return (s - lo) / (hi - lo)
+    return (s - lo) / np.maximum(hi - lo, 1e-12)
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,8 @@ import numpy as np
 import pandas as pd
 
 from analysis.design import PlanTiming
-from analysis.face_model import PLAY_FRACTIONS, FaceModel, normalized_logistic
+from analysis.face_model import FaceModel
+from analysis.hysteresis_fit import PLAY_FRACTIONS, normalized_logistic
 from analysis.plans import PLAN_NAMES
 
 SUBSTEPS = np.array([1.0 / 3.0, 2.0 / 3.0, 1.0])  # points per command step where the cost is read

@@ -2,7 +2,7 @@
 half-widths on one input series, in one pass.
 
 A Prandtl-Ishlinskii response of any width ``r`` is then a weighted sum of table columns
-(:func:`pi_weights`): fitting a width per marker needs no play loop at all (the table is computed
+(:func:`pi_logistic_from_table`): fitting a width per marker needs no play loop at all (the table is computed
 once per actuator series), which is what makes the face model's identification fast.
 """
 
@@ -55,27 +55,6 @@ def play_table(a: np.ndarray, keep_every: int = 1, halfwidths: np.ndarray = HALF
     out = np.empty((n_out, h.shape[0]))
     _play_table(a, h, int(keep_every), out)
     return out
-
-
-def pi_weights(r: np.ndarray, fractions: np.ndarray, h_step: float = H_STEP,
-               n_columns: int = HALFWIDTHS.size) -> np.ndarray:
-    """Column weights (H, n) so that ``table @ W`` is the PI operator of width ``r`` per column.
-
-    The PI operator of width r is the mean of plays of half-widths ``fractions * r``; each
-    play is interpolated linearly between the table's columns.
-
-    r : (n,) widths, command units (clipped to the table's range).
-    """
-    r = np.asarray(r, float)
-    W = np.zeros((n_columns, r.size))
-    cols = np.arange(r.size)
-    for f in np.asarray(fractions, float):
-        x = np.clip(f * r / h_step, 0.0, n_columns - 1 - 1e-9)
-        i0 = np.floor(x).astype(int)
-        lam = x - i0
-        np.add.at(W, (i0, cols), (1.0 - lam) / len(fractions))
-        np.add.at(W, (np.minimum(i0 + 1, n_columns - 1), cols), lam / len(fractions))
-    return W
 
 
 @njit(cache=True)
@@ -131,7 +110,9 @@ def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta
 
     Returns y (S, M) and, with ``derivatives``, dy/d(alpha, beta, r) (S, M, 3).
     """
-    fr = np.asarray((0.0, 0.5, 1.0, 1.5, 2.0) if fractions is None else fractions, float)
+    from analysis.hysteresis_fit import PLAY_FRACTIONS
+
+    fr = np.asarray(PLAY_FRACTIONS if fractions is None else fractions, float)
     r = np.asarray(r, float)
     H = P.shape[1]
     x = np.clip(fr[:, None] * r[None, :] / H_STEP, 0.0, H - 1 - 1e-9)

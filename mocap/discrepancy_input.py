@@ -44,7 +44,7 @@ def _schedule_key(rows: pd.DataFrame) -> str:
     return f"{zlib.crc32(blob):08x}"
 
 
-def _trajectories_from_out(out: Path, names_hint=None):
+def _trajectories_from_out(out: Path) -> dict[str, Path]:
     files = {p.stem: p for p in (out / "trajectories").glob("*.parquet")}
     if not files:
         raise SessionError(f"{out / 'trajectories'}: no <take>.parquet files (is this a mocap run output?)")

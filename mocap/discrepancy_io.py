@@ -166,17 +166,7 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
     floor = res.noise_floor_mm
     takes = [t.name for t in data.takes]
     for i, st in enumerate(res.stages):
-        grid = np.full((len(takes), len(PHASES)), np.nan)
-        # per take and phase ratios
-        from analysis.discrepancy import phases
-
-        for k, (t, e) in enumerate(zip(data.takes, res.heldout_residuals[i])):
-            sq = np.where(data.used[None], np.sum(e ** 2, axis=-1), np.nan)
-            ph = phases(t, data.samples(k), data.fps)
-            for p in np.unique(ph):
-                v = sq[ph == p]
-                if np.isfinite(v).any():
-                    grid[k, p] = np.sqrt(np.nanmean(v)) / floor
+        grid = np.array([[st["take_phases"][t].get(ph, np.nan) for ph in PHASES] for t in takes])
         p = fig_dir / f"discrepancy_localisation_stage{i}.png"
         F.discrepancy_localisation(p, takes, list(PHASES), grid, f"stage {i}: {st['model']}")
         out[f"localisation, stage {i}"] = f"figures/{p.name}"

@@ -271,6 +271,8 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
     import rerun as rr
     import rerun.blueprint as rrb
 
+    from analysis.discrepancy import worst_marker
+
     fps = float(data.fps)
     names = list(data.marker_names)
     bp = rrb.Blueprint(rrb.Horizontal(
@@ -301,8 +303,6 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
             _points_over_time(rec, rr, f"discrepancy/{name}/measured", fr[ok], fps,
                               obs.reshape(-1, 3)[ok], class_ids=cid[ok],
                               radii=np.full(ok.sum(), 0.5, np.float32))
-            from analysis.discrepancy import worst_marker
-
             m, u = worst_marker(res.heldout_residuals[0][k], data.used)
             series = [(obs[:, m] - data.rest_mm[m]) @ u]
             labels = ["measured"]
