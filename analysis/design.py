@@ -13,8 +13,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from analysis.plans import plan as plan_function
-from analysis.response import inverse_sigmoid
+from mocap.analysis.plans import plan as plan_function
+from mocap.analysis.response import inverse_sigmoid
 from mocap.schedules import round_half_up
 
 

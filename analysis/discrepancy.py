@@ -1,13 +1,13 @@
 """The model-discrepancy workflow: find where the face model and the measurement disagree,
 name the missing effect, add it, show the gap shrink.
 
-1. Fit the current model (the paper's: PI hysteresis + logistic, :mod:`analysis.face_model`)
+1. Fit the current model (the paper's: PI hysteresis + logistic, :mod:`mocap.analysis.face_model`)
    on identification takes.
 2. Predict every take and compare with the measurement; residuals per take, DU, marker and
    phase of the command (:func:`phases`).
 3. Localise the disagreement against the measurement's own noise floor (:func:`noise_floor`,
    from repeated trials).
-4. For each candidate effect (:data:`analysis.model_effects.CATALOGUE`) fit the extended model
+4. For each candidate effect (:data:`mocap.analysis.model_effects.CATALOGUE`) fit the extended model
    and score it on held-out takes: two-fold cross-validation over takes (repetitions and
    schedules alternate between folds, :func:`assign_folds`), scored by a held-out BIC,
    ``n_eff ln(SSE_cand / SSE_cur) + dk ln(n_eff)`` with ``n_eff`` the residuals' effective
@@ -22,7 +22,7 @@ name the missing effect, add it, show the gap shrink.
 7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
    to the noise floor.
 
-Pure computations on :class:`analysis.model_fit.ModelData`; I/O is in :mod:`mocap.discrepancy_io`.
+Pure computations on :class:`mocap.analysis.model_fit.ModelData`; I/O is in :mod:`mocap.discrepancy_io`.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.face_model import FaceModel, make_effects
-from analysis.model_effects import CATALOGUE, ScheduleSummary, summarize_schedules
-from analysis.model_fit import (
+from mocap.analysis.face_model import FaceModel, make_effects
+from mocap.analysis.model_effects import CATALOGUE, ScheduleSummary, summarize_schedules
+from mocap.analysis.model_fit import (
     ModelData,
     TakeData,
     fit_curves,

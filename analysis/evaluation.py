@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.displacement import normalized
+from mocap.analysis.displacement import normalized
 
 
 @dataclass(frozen=True)

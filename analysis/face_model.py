@@ -1,7 +1,7 @@
 """The face model: every marker's 3D position for any command time series on any set of DUs.
 
 The paper's static model, with a rule for reversals, plus composable effects
-(:mod:`analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
+(:mod:`mocap.analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
 
     a_n(t)   = actuator-stage effects of the command c_n(t)       (identity in the base model)
     w_nm(t)  = PI_{r_nm}[a_n](t)       Prandtl-Ishlinskii operator: mean of plays of half-widths
@@ -29,9 +29,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from analysis.hysteresis_fit import PLAY_FRACTIONS
-from analysis.model_effects import CATALOGUE, Effect
-from analysis.play_kernel import pi_logistic_from_table, play_table
+from mocap.analysis.hysteresis_fit import PLAY_FRACTIONS
+from mocap.analysis.model_effects import CATALOGUE, Effect
+from mocap.analysis.play_kernel import pi_logistic_from_table, play_table
 from mocap.schedules import sample_commands
 
 OVERSAMPLE = 4

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.response import sigmoid
+from mocap.analysis.response import sigmoid
 from mocap.atomic import atomic_path
 
 
@@ -247,7 +247,7 @@ def design_comparison(path, title, evaluations: dict) -> Path:
     """Designed motions side by side: one panel per method (e.g. paper, model, refined), each the
     plan P(t) and the realized normalised displacement (mean +- sd over markers) in closed loop.
 
-    evaluations : method name -> :class:`analysis.evaluation.MotionEvaluation`.
+    evaluations : method name -> :class:`mocap.analysis.evaluation.MotionEvaluation`.
     """
     plt = _plt()
     n = max(len(evaluations), 1)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.hysteresis import play
+from mocap.analysis.hysteresis import play
 
 PLAY_FRACTIONS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
 

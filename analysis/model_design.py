@@ -1,7 +1,7 @@
 """Motion design through the identified face model (issue #11): commands that make the markers
 follow a plan, found by optimising the command sequence through the whole model.
 
-The paper designs commands by inverting full-sweep sigmoids (:func:`analysis.design.paper_design`):
+The paper designs commands by inverting full-sweep sigmoids (:func:`mocap.analysis.design.paper_design`):
 it knows nothing of reversals inside the range (minor loops), actuator dynamics (lag, dead time,
 backlash) or several DUs acting at once. Here the command of every DU at every command step is
 chosen so that the model's predicted normalised displacement of the chosen markers follows the
@@ -54,10 +54,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from analysis.design import PlanTiming
-from analysis.face_model import FaceModel
-from analysis.hysteresis_fit import PLAY_FRACTIONS, normalized_logistic
-from analysis.plans import PLAN_NAMES
+from mocap.analysis.design import PlanTiming
+from mocap.analysis.face_model import FaceModel
+from mocap.analysis.hysteresis_fit import PLAY_FRACTIONS, normalized_logistic
+from mocap.analysis.plans import PLAN_NAMES
 
 SUBSTEPS = np.array([1.0 / 3.0, 2.0 / 3.0, 1.0])  # points per command step where the cost is read
 COARSE = 8  # coarse candidate spacing, command units (then +-COARSE-1 around the best)
@@ -506,8 +506,8 @@ def commands_matrix(rows: pd.DataFrame, dus, n_frames: int, fps: float) -> np.nd
 
 def predicted_delta(model: FaceModel, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
     """The model's normalised displacement (n_frames, M) of a command file, as the evaluation
-    measures it (:func:`analysis.evaluation.realized_delta`)."""
-    from analysis.evaluation import realized_delta
+    measures it (:func:`mocap.analysis.evaluation.realized_delta`)."""
+    from mocap.analysis.evaluation import realized_delta
 
     dus = sorted(int(d) for d in pd.unique(rows["du"]))
     X = model.predict(rows, n_frames, trial)
@@ -518,7 +518,7 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised displacement of a measured take without the bias of noise.
 
-    As :func:`analysis.evaluation.realized_delta`, but the length of each displacement is
+    As :func:`mocap.analysis.evaluation.realized_delta`, but the length of each displacement is
     sqrt(max(|d|^2 - 3 s_m^2, 0)), s_m the marker's noise per axis (its standard deviation over
     the rest frames before the first command change): |d| of pure noise is positive, which
     would teach a refinement to lag near rest. Noise-free data give realized_delta exactly.
@@ -527,7 +527,7 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6
     """
     import warnings
 
-    from analysis.displacement import plateau_level
+    from mocap.analysis.displacement import plateau_level
 
     change = np.flatnonzero(np.any(np.diff(command, axis=0) != 0, axis=-1))
     lead = int(change[0]) + 1 if change.size else 1
@@ -625,10 +625,10 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
 def evaluate_design(X: np.ndarray, rows: pd.DataFrame, fps: float, ref: Reference,
                     keep: np.ndarray | None = None):
     """A played (or predicted) take of a design against its plan, as 'mocap run' evaluates
-    motions (:func:`analysis.evaluation.evaluate_motion`): X (n_frames, M, 3) mm, markers
+    motions (:func:`mocap.analysis.evaluation.evaluate_motion`): X (n_frames, M, 3) mm, markers
     ``keep`` (default all) that move at least 0.05 mm; forward = ``ref.rise``, backward =
-    ``ref.fall``. Returns a :class:`analysis.evaluation.MotionEvaluation`."""
-    from analysis.evaluation import evaluate_motion, realized_delta
+    ``ref.fall``. Returns a :class:`mocap.analysis.evaluation.MotionEvaluation`."""
+    from mocap.analysis.evaluation import evaluate_motion, realized_delta
 
     n, M = X.shape[:2]
     dus = sorted(int(d) for d in pd.unique(rows["du"]))

@@ -1,6 +1,6 @@
 """Effects: composable terms of the face model, each with its parameter, its fit and its meaning.
 
-The face model (:mod:`analysis.face_model`) computes a take's marker displacements in four
+The face model (:mod:`mocap.analysis.face_model`) computes a take's marker displacements in four
 stages; an effect acts on one stage through a hook and leaves the others alone (the defaults
 below are the identity), so adding an effect is writing one class here and registering it in
 :data:`CATALOGUE`:
@@ -187,7 +187,7 @@ class Backlash(Effect):
     def actuator(self, a, t, sampler):
         if self.value <= 0:
             return a
-        from analysis.play_kernel import play_table
+        from mocap.analysis.play_kernel import play_table
 
         h = np.array([self.value])
         return np.column_stack([play_table(a[:, j], 1, h)[:, 0] for j in range(a.shape[1])])

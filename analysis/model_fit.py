@@ -1,9 +1,9 @@
-"""Identification of the face model (:mod:`analysis.face_model`) from measured takes.
+"""Identification of the face model (:mod:`mocap.analysis.face_model`) from measured takes.
 
 Per DU and marker the curve parameters (alpha, beta, r) are fitted by Levenberg-Marquardt,
 vectorised over the DU's markers, with the linear ones (D and the path-basis vectors B)
 eliminated by variable projection (closed form for given responses); the play widths r read the
-take's play table (:mod:`analysis.play_kernel`), so no play loop runs inside the iterations.
+take's play table (:mod:`mocap.analysis.play_kernel`), so no play loop runs inside the iterations.
 Curves are fitted on single-DU takes only; takes with several DUs inform the global parameters of
 interaction effects (``coupling``) and are predicted like any other.
 
@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
-from analysis.face_model import (
+from mocap.analysis.face_model import (
     OVERSAMPLE,
     PLAY_FRACTIONS,
     R_MAX,
@@ -32,8 +32,8 @@ from analysis.face_model import (
     n_bases,
     take_tables,
 )
-from analysis.model_effects import Effect
-from analysis.play_kernel import pi_logistic_from_table
+from mocap.analysis.model_effects import Effect
+from mocap.analysis.play_kernel import pi_logistic_from_table
 
 BETA_STARTS = (60.0, 128.0, 196.0)
 

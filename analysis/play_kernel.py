@@ -110,7 +110,7 @@ def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta
 
     Returns y (S, M) and, with ``derivatives``, dy/d(alpha, beta, r) (S, M, 3).
     """
-    from analysis.hysteresis_fit import PLAY_FRACTIONS
+    from mocap.analysis.hysteresis_fit import PLAY_FRACTIONS
 
     fr = np.asarray(PLAY_FRACTIONS if fractions is None else fractions, float)
     r = np.asarray(r, float)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.logistic_fit import fit_logistic
+from mocap.analysis.logistic_fit import fit_logistic
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ def dyssynchrony(delta: np.ndarray, keep: np.ndarray, noise_var: np.ndarray | No
     d = delta[:, keep]
     import warnings
 
-    from analysis.displacement import smoothed
+    from mocap.analysis.displacement import smoothed
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -11,12 +11,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from analysis.design import PlanTiming
-from analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
-from analysis.displacement import plateau_mask
-from analysis.linearity import spatial_linearity, step_noise_covariance
-from analysis.plans import PLAN_NAMES
-from analysis.properties import du_properties
+from mocap.analysis.design import PlanTiming
+from mocap.analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
+from mocap.analysis.displacement import plateau_mask
+from mocap.analysis.linearity import spatial_linearity, step_noise_covariance
+from mocap.analysis.plans import PLAN_NAMES
+from mocap.analysis.properties import du_properties
 
 MIN_STEP_DOF = 30  # in-take noise covariance needs this many degrees of freedom per marker
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
@@ -46,7 +46,7 @@ def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
     the mean squared frame-to-frame difference there is the variance of the curve's white noise
     (trial-mean measurement noise and skin jitter alike, in delta units, whatever the noise's
     direction). How it reaches each step mean (through the rest reference and the plateau too)
-    is ``analysis.properties.step_noise_factor``'s business. Flat holds rather than every step:
+    is ``mocap.analysis.properties.step_noise_factor``'s business. Flat holds rather than every step:
     a response still moving inside a step would count as noise there.
     """
     c = np.asarray(command)
@@ -64,7 +64,7 @@ def take_noise_covariance(avg, noise_mm: np.ndarray | None = None,
                           noise_cov_mm2: np.ndarray | None = None) -> np.ndarray:
     """(M, 3, 3) mm^2 noise covariance of each marker's positions in a response take, for the
     noise-corrected linearity: measured within the take's command steps
-    (``analysis.linearity.step_noise_covariance``); where a marker has fewer than
+    (``mocap.analysis.linearity.step_noise_covariance``); where a marker has fewer than
     ``MIN_STEP_DOF`` degrees of freedom there, the rest take's covariance (``noise_cov_mm2``) or
     isotropic ``noise_mm`` ** 2 when given."""
     cov, dof = step_noise_covariance(avg.trials, avg.command)
@@ -97,7 +97,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the response
         fits and indices use only markers whose peak displacement is at least ``MIN_SNR`` times
         that noise (below it a normalised curve is mostly noise: its "peak" is a noise maximum),
-        and the dyssynchrony is corrected for the remaining noise (``analysis.properties``).
+        and the dyssynchrony is corrected for the remaining noise (``mocap.analysis.properties``).
     noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the noise-corrected
         linearity's fallback for markers with too few samples within the response takes' steps
         (its noise covariance is measured there, ``take_noise_covariance``).

@@ -53,8 +53,8 @@ def stage_simulate() -> dict:
 
 
 def stage_calibrate() -> dict:
-    from calib.calibration_file import read_calibration
-    from calib.wand_calibration import calibrate_session
+    from mocap.calib.calibration_file import read_calibration
+    from mocap.calib.wand_calibration import calibrate_session
     from mocap.session import load_session
 
     import numpy as np
@@ -72,9 +72,9 @@ def stage_triangulate() -> dict:
     """Known correspondences: 2 million points seen by the 6 cameras of the paper rig."""
     import numpy as np
 
-    from calib.calibration_file import read_calibration
-    from calib.triangulation import normalized_observations, triangulate
-    from calib.triangulation_kernel import triangulate_normalized
+    from mocap.calib.calibration_file import read_calibration
+    from mocap.calib.triangulation import normalized_observations, triangulate
+    from mocap.calib.triangulation_kernel import triangulate_normalized
 
     rig, _ = read_calibration(CACHE / "truth" / "cameras.toml")
     rng = np.random.default_rng(0)
@@ -103,9 +103,9 @@ def stage_peer() -> dict:
     cameras and correspondences: throughput ratio and both 3D errors."""
     import numpy as np
 
-    from calib.calibration_file import read_calibration
-    from calib.camera import rodrigues_from_rotation
-    from calib.triangulation import triangulate
+    from mocap.calib.calibration_file import read_calibration
+    from mocap.calib.camera import rodrigues_from_rotation
+    from mocap.calib.triangulation import triangulate
 
     venv = HERE / "cache" / "peer-venv"
     py = venv / "bin" / "python"
@@ -126,8 +126,8 @@ def stage_peer() -> dict:
     out = subprocess.run([str(py), str(HERE / "peer_triangulate.py"), str(work / "peer_cams.json"),
                           str(work / "peer_obs.npz")], check=True, capture_output=True, text=True)
     peer = json.loads(out.stdout.strip().splitlines()[-1])
-    from calib.triangulation import normalized_observations
-    from calib.triangulation_kernel import triangulate_normalized
+    from mocap.calib.triangulation import normalized_observations
+    from mocap.calib.triangulation_kernel import triangulate_normalized
 
     triangulate(rig, uv[:, :1000])
     t0 = time.perf_counter()
@@ -150,7 +150,7 @@ def stage_peer() -> dict:
 
 def stage_reconstruct() -> dict:
     """Correspondence + triangulation + labeling of every face take of the paper session."""
-    from calib.wand_calibration import calibrate_session
+    from mocap.calib.wand_calibration import calibrate_session
     from mocap.pipeline import RunSettings, reconstruct_all
     from mocap.session import load_session
 
@@ -213,7 +213,7 @@ def stage_run() -> dict:
 
 def stage_discrepancy() -> dict:
     """``mocap discrepancy`` on the paper run's output (no hidden effect: names nothing)."""
-    from analysis.discrepancy import DiscrepancySettings
+    from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.discrepancy_io import run
 
     src = HERE / "cache" / "paper_run"

@@ -5,6 +5,6 @@ camera-from-world, ``x_cam = R @ X + t`` with X in mm; pinhole ``K`` in px; Brow
 distortion ``dist = [k1, k2, p1, p2, k3]``; image origin at the top-left pixel's centre.
 """
 
-from calib.camera import Camera, CameraRig
+from mocap.calib.camera import Camera, CameraRig
 
 __all__ = ["Camera", "CameraRig"]

@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from calib.camera import Camera, CameraRig, rodrigues_from_rotation, rotation_from_rodrigues
+from mocap.calib.camera import Camera, CameraRig, rodrigues_from_rotation, rotation_from_rodrigues
 
 N_CAM = 13  # rvec 3, t 3, f, cx, cy, k1, k2, p1, p2
 N_FRAME = 5  # centre 3, tangent 2

@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from calib.camera import Camera, CameraRig
+from mocap.calib.camera import Camera, CameraRig
 from mocap.atomic import write_text
 
 

@@ -20,8 +20,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
-from calib.camera import Camera, CameraRig
-from calib.wand import WandObservations
+from mocap.calib.camera import Camera, CameraRig
+from mocap.calib.wand import WandObservations
 
 
 class CalibrationError(RuntimeError):

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.camera import Camera
+from mocap.calib.camera import Camera
 from mocap.atomic import atomic_path
 
 

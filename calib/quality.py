@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.camera import CameraRig
-from calib.triangulation import triangulate
-from calib.wand import WandObservations
+from mocap.calib.camera import CameraRig
+from mocap.calib.triangulation import triangulate
+from mocap.calib.wand import WandObservations
 
 RATING = {
     "excellent": {"max_reprojection_rms_px": 0.15, "max_wand_length_sd_mm": 0.05},

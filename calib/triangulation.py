@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.camera import CameraRig
+from mocap.calib.camera import CameraRig
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def triangulate(rig: CameraRig, uv: np.ndarray, *, min_cameras: int = 2,
     if uv.ndim != 3 or uv.shape[0] != len(rig) or uv.shape[2] != 2:
         raise ValueError(f"triangulate: expected uv of shape ({len(rig)}, n_points, 2), got {uv.shape}")
     min_cameras = max(int(min_cameras), 2)
-    from calib.triangulation_kernel import triangulate_normalized
+    from mocap.calib.triangulation_kernel import triangulate_normalized
 
     xn = normalized_observations(rig, uv)
     Rt = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])

@@ -1,7 +1,7 @@
 """Compiled (numba) kernel: linear triangulation plus Gauss-Newton, one fused pass per point.
 
-Same mathematics as :func:`calib.triangulation.linear_triangulation` followed by
-:func:`calib.triangulation.gauss_newton` (the NumPy reference the tests compare against), but
+Same mathematics as :func:`mocap.calib.triangulation.linear_triangulation` followed by
+:func:`mocap.calib.triangulation.gauss_newton` (the NumPy reference the tests compare against), but
 per point in registers and in parallel over points: about 30 x the NumPy version's throughput.
 The kernel is compiled on first use and cached on disk (``cache=True``).
 """

@@ -106,7 +106,7 @@ def find_wand(blobs: pd.DataFrame, camera_ids, offsets_mm, *, line_tol_px: float
     offsets = np.sort(np.asarray(offsets_mm, float))
     n_w = offsets.size
     gaps = np.diff(offsets)
-    from calib.camera import camera_index
+    from mocap.calib.camera import camera_index
 
     cam = camera_index(blobs["camera"], camera_ids)
     if np.any(cam < 0):

@@ -22,19 +22,19 @@ from typing import Callable
 
 import numpy as np
 
-from calib.bundle import (
+from mocap.calib.bundle import (
     WandProblem,
     _tangent_basis,
     camera_vector,
     rig_from_vectors,
     solve_schur,
 )
-from calib.camera import CameraRig
-from calib.initialize import CalibrationError, initial_intrinsics, initial_rig
-from calib.quality import quality_report
-from calib.triangulation import triangulate
-from calib.wand import WandObservations, find_wand
-from calib.world_frame import GroundFit, fit_ground, transform_rig
+from mocap.calib.camera import CameraRig
+from mocap.calib.initialize import CalibrationError, initial_intrinsics, initial_rig
+from mocap.calib.quality import quality_report
+from mocap.calib.triangulation import triangulate
+from mocap.calib.wand import WandObservations, find_wand
+from mocap.calib.world_frame import GroundFit, fit_ground, transform_rig
 
 __all__ = ["CalibrationError", "CalibrationResult", "calibrate", "calibrate_session"]
 
@@ -95,8 +95,8 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
 
     Parameters
     ----------
-    obs : wand sightings from :func:`calib.wand.find_wand`.
-    cameras_init : list of :class:`calib.camera.Camera` with initial intrinsics (poses ignored).
+    obs : wand sightings from :func:`mocap.calib.wand.find_wand`.
+    cameras_init : list of :class:`mocap.calib.camera.Camera` with initial intrinsics (poses ignored).
     offsets_mm : (n_w,) the wand's marker offsets, mm.
     ground_blobs, ground_markers_mm : the ground take's blobs and the square's coordinates; when
         given, the result is in the square's world frame.

@@ -18,9 +18,9 @@ from itertools import permutations
 import numpy as np
 import pandas as pd
 
-from calib.camera import Camera, CameraRig
-from calib.initialize import CalibrationError
-from calib.triangulation import triangulate
+from mocap.calib.camera import Camera, CameraRig
+from mocap.calib.initialize import CalibrationError
+from mocap.calib.triangulation import triangulate
 
 
 @dataclass(frozen=True)

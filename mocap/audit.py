@@ -172,7 +172,7 @@ def write_audit(result, out: Path, audit: dict | None = None) -> dict:
     a = audit if audit is not None else audit_capture(result)
     write_text(out / "audit.json", json.dumps(a, indent=2, default=float))
     write_text(out / "audit.md", _markdown(a))
-    from analysis.figures import audit_noise_map, audit_visibility
+    from mocap.analysis.figures import audit_noise_map, audit_visibility
 
     recon = result.reconstruction
     if "views" in recon.capture and result.calibration is not None:

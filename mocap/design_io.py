@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from analysis.face_model import FaceModel
-from analysis.model_design import Reference
+from mocap.analysis.face_model import FaceModel
+from mocap.analysis.model_design import Reference
 from mocap.session import SessionError
 
 
@@ -26,9 +26,9 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
 
     Returns (model, how it was identified).
     """
-    from analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy
-    from analysis.model_effects import CATALOGUE
-    from analysis.model_fit import fit_curves, profile_effect
+    from mocap.analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy
+    from mocap.analysis.model_effects import CATALOGUE
+    from mocap.analysis.model_fit import fit_curves, profile_effect
     from mocap.discrepancy_input import load_measured
 
     say = progress or (lambda m: None)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from analysis.model_fit import TakeData
+from mocap.analysis.model_fit import TakeData
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
 from mocap.session import Session, SessionError, load_session
 

@@ -1,4 +1,4 @@
-"""`mocap discrepancy`: run the workflow of :mod:`analysis.discrepancy` on a session or a run's
+"""`mocap discrepancy`: run the workflow of :mod:`mocap.analysis.discrepancy` on a session or a run's
 output and write ``discrepancy.json``, ``discrepancy.md``, ``figures/`` and ``discrepancy.rrd``.
 """
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.discrepancy import (
+from mocap.analysis.discrepancy import (
     PHASES,
     DiscrepancyResult,
     DiscrepancySettings,
@@ -19,7 +19,7 @@ from analysis.discrepancy import (
     run_discrepancy,
     worst_marker,
 )
-from analysis.model_effects import CATALOGUE
+from mocap.analysis.model_effects import CATALOGUE
 from mocap.atomic import write_text
 from mocap.discrepancy_input import load_measured
 
@@ -159,7 +159,7 @@ def _evidence_row(e: dict) -> str:
 
 
 def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict:
-    from analysis import figures as F
+    from mocap.analysis import figures as F
 
     out = {}
     data = prep.data

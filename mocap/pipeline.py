@@ -96,7 +96,7 @@ class RunResult:
     reconstruction: Reconstruction | None = None
     averages: list = field(default_factory=list)
     rejections: pd.DataFrame | None = None
-    analysis: object | None = None  # analysis.session_analysis.SessionAnalysis
+    analysis: object | None = None  # mocap.analysis.session_analysis.SessionAnalysis
     audit: dict | None = None
 
 
@@ -271,8 +271,8 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
 def run_analyses(session: Session, recon: Reconstruction, averages, rejections, out: Path,
                  say: Callable[[str], None]):
     """The paper's analyses, their tables and figures; motion takes evaluated against plans."""
-    from analysis import figures
-    from analysis.session_analysis import analyze_responses, evaluate_plan_take, is_plan, kept_markers
+    from mocap.analysis import figures
+    from mocap.analysis.session_analysis import analyze_responses, evaluate_plan_take, is_plan, kept_markers
 
     names = list(recon.markers.names)
     du_names = {d.id: d.name for d in session.dus}
@@ -282,7 +282,7 @@ def run_analyses(session: Session, recon: Reconstruction, averages, rejections, 
         noise = np.sqrt(np.nanmean(recon.noise_per_marker_mm**2, axis=1))
         rest = session.takes_of_kind("rest")
         if rest and rest[0].name in recon.dense:
-            from analysis.linearity import position_covariance
+            from mocap.analysis.linearity import position_covariance
 
             noise_cov = position_covariance(recon.dense[rest[0].name].X)[0]
     res = analyze_responses(averages, names, rejections, du_names, noise_mm=noise,
@@ -356,8 +356,8 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
 
     calibration = None
     if session.dimension == "2d":
-        from calib.calibration_file import write_calibration
-        from calib.wand_calibration import calibrate_session
+        from mocap.calib.calibration_file import write_calibration
+        from mocap.calib.wand_calibration import calibrate_session
 
         t = time.perf_counter()
         calibration = calibrate_session(session, progress=say)

@@ -191,7 +191,7 @@ def _log_takes(rec, rr, result, fps, names):
 
 
 def _log_responses(rec, rr, result, fps):
-    from analysis.response import sigmoid
+    from mocap.analysis.response import sigmoid
 
     res = result.analysis
     if res is None:
@@ -271,7 +271,7 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from analysis.discrepancy import worst_marker
+    from mocap.analysis.discrepancy import worst_marker
 
     fps = float(data.fps)
     names = list(data.marker_names)

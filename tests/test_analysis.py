@@ -6,12 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.displacement import normalized, normalized_along
-from analysis.linearity import spatial_linearity
-from analysis.logistic_fit import fit_logistic
-from analysis.plans import PLAN_NAMES, plan
-from analysis.properties import du_properties, dyssynchrony, find_ramps
-from analysis.response import inverse_sigmoid, sigmoid
+from mocap.analysis.displacement import normalized, normalized_along
+from mocap.analysis.linearity import spatial_linearity
+from mocap.analysis.logistic_fit import fit_logistic
+from mocap.analysis.plans import PLAN_NAMES, plan
+from mocap.analysis.properties import du_properties, dyssynchrony, find_ramps
+from mocap.analysis.response import inverse_sigmoid, sigmoid
 from mocap.schedules import sample_commands, trapezoid
 
 FPS = 120.0
@@ -78,9 +78,9 @@ def step_response(alpha, beta_f, beta_b, n_markers, beta_sd, seed=0):
 
 
 def test_step_dyssynchrony_removes_noise():
-    from analysis.displacement import plateau_mask
-    from analysis.properties import dyssynchrony_steps
-    from analysis.session_analysis import delta_noise_variance
+    from mocap.analysis.displacement import plateau_mask
+    from mocap.analysis.properties import dyssynchrony_steps
+    from mocap.analysis.session_analysis import delta_noise_variance
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=40, beta_sd=5.0)
     keep = np.ones(40, bool)
@@ -104,7 +104,7 @@ def test_step_dyssynchrony_removes_noise():
 
 def test_step_noise_factor_is_the_step_means_error_variance():
     """Monte-Carlo of the first-order error of a step mean of (x - r) / (p - r)."""
-    from analysis.properties import command_runs, step_noise_factor
+    from mocap.analysis.properties import command_runs, step_noise_factor
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=3, beta_sd=5.0)
     start, length = command_runs(c)
@@ -159,7 +159,7 @@ def test_spatial_linearity():
 def test_corrected_linearity_of_curved_paths_with_step_noise():
     """Noise covariance measured within the command steps, subtracted without flooring: the
     corrected linearity matches the noise-free one, straight (1) or curved (< 1)."""
-    from analysis.linearity import step_noise_covariance
+    from mocap.analysis.linearity import step_noise_covariance
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=30, beta_sd=5.0)
     bend = np.linspace(0.0, 0.8, 30)  # 0: straight, up to a strongly bent path
@@ -191,7 +191,7 @@ def test_noise_corrected_indices_unbiased_monte_carlo():
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
     from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
-    from analysis.session_analysis import analyze_responses
+    from mocap.analysis.session_analysis import analyze_responses
 
     cfg = preset("small", seed=11, battery=False, n_trials=10)
     _, _, face = virtual_rig_and_face(cfg)

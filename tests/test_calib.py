@@ -8,12 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib.bundle import WandProblem, _tangent_basis, camera_vector, solve, solve_schur
-from calib.calibration_file import read_calibration, write_calibration
-from calib.opencv_yaml import read_opencv_yaml, write_opencv_yaml
-from calib.triangulation import triangulate
-from calib.wand import find_wand
-from calib.wand_calibration import CalibrationError, calibrate_session
+from mocap.calib.bundle import WandProblem, _tangent_basis, camera_vector, solve, solve_schur
+from mocap.calib.calibration_file import read_calibration, write_calibration
+from mocap.calib.opencv_yaml import read_opencv_yaml, write_opencv_yaml
+from mocap.calib.triangulation import triangulate
+from mocap.calib.wand import find_wand
+from mocap.calib.wand_calibration import CalibrationError, calibrate_session
 from conftest import make_session
 from mocap.session import load_session
 
@@ -89,7 +89,7 @@ def test_schur_solver_agrees_with_scipy(calib_result):
     obs = obs.select(keep)
     frames = np.unique(obs.frame)
     rig = r.rig
-    from calib.wand_calibration import _initial_frames
+    from mocap.calib.wand_calibration import _initial_frames
 
     offsets = np.array([-75.0, -25.0, 75.0])
     centre, u0 = _initial_frames(rig, obs, frames, offsets)
@@ -115,7 +115,7 @@ def test_calibration_accuracy(calib_sim, calib_result):
     assert max(q["reprojection_rms_px"].values()) <= 1.1 * NOISE_PX
     assert abs(q["wand_length_error_mean_mm"]) < 0.01
     # the wand length's spread is the measurement noise: the true cameras give the same
-    from calib.quality import wand_lengths
+    from mocap.calib.quality import wand_lengths
 
     kept = calib_result.wand.select(calib_result.used)
     _, true_len = wand_lengths(truth, kept)
@@ -249,8 +249,8 @@ def test_calibrate_cli(calib_sim, tmp_path, capsys):
 
 
 def test_compiled_kernel_matches_numpy_reference(calib_sim):
-    from calib.triangulation import gauss_newton, linear_triangulation, normalized_observations
-    from calib.triangulation_kernel import triangulate_normalized
+    from mocap.calib.triangulation import gauss_newton, linear_triangulation, normalized_observations
+    from mocap.calib.triangulation_kernel import triangulate_normalized
 
     rig = true_rig(calib_sim)
     rng = np.random.default_rng(3)

@@ -123,7 +123,7 @@ def test_compiled_linking_matches_reference(small_sim, small_run, take):
 
 
 def test_empty_take():
-    from calib.camera import Camera, CameraRig
+    from mocap.calib.camera import Camera, CameraRig
 
     rig = CameraRig.of(Camera.look_at(f"c{i}", (300.0 * i, 0, -800), (0, 0, 0), width=640,
                                       height=480, focal_px=800.0) for i in range(3))
@@ -136,7 +136,7 @@ def test_empty_take():
 
 @pytest.mark.parametrize("dtype", ["str", object, "category", "string[pyarrow]"])
 def test_blob_camera_index_matches_camera_index(dtype):
-    from calib.camera import camera_index
+    from mocap.calib.camera import camera_index
     from mocap.reconstruct.correspondence import blob_camera_index
 
     ids = ["cam1", "cam2", "cam3"]

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.design import PlanTiming, SigmoidPair, paper_design
+from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
 from conftest import make_session
 from mocap.cli import main
 from mocap.pipeline import run_session

@@ -14,13 +14,13 @@ import pandas as pd
 import pytest
 from conftest import make_session
 
-from analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy, trial_noise
-from analysis.face_model import FaceModel
-from analysis.hysteresis import play
-from analysis.hysteresis_fit import pi_logistic
-from analysis.model_effects import CATALOGUE, Effect, summarize_schedules
-from analysis.model_fit import ModelData, TakeData, fit_curves, profile_effect
-from analysis.play_kernel import pi_logistic_from_table, play_table
+from mocap.analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy, trial_noise
+from mocap.analysis.face_model import FaceModel
+from mocap.analysis.hysteresis import play
+from mocap.analysis.hysteresis_fit import pi_logistic
+from mocap.analysis.model_effects import CATALOGUE, Effect, summarize_schedules
+from mocap.analysis.model_fit import ModelData, TakeData, fit_curves, profile_effect
+from mocap.analysis.play_kernel import pi_logistic_from_table, play_table
 from mocap.discrepancy_input import load_measured
 from mocap.schedules import identification_battery, trapezoid
 from mocap.simulate import preset

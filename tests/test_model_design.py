@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.design import PlanTiming, SigmoidPair, paper_design, paper_design_series
-from analysis.model_design import (
+from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design, paper_design_series
+from mocap.analysis.model_design import (
     design_commands,
     evaluate_design,
     file_reference,
@@ -25,7 +25,7 @@ from analysis.model_design import (
     rest_state,
     simulate_steps,
 )
-from analysis.plans import PLAN_NAMES
+from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
 from mocap.cli import main
 from mocap.design_io import identify_model, play_virtual, virtual_face_of
@@ -93,7 +93,7 @@ def assert_valid_command_file(rows: pd.DataFrame, step_s: float, dus=DUS):
 def test_stepped_plant_matches_the_face_model(lag_face):
     """Stepping the model between command steps gives the model's own response to random
     commands (hysteresis with reversals everywhere, and the lag), read at frames inside the steps."""
-    from analysis.face_model import take_tables
+    from mocap.analysis.face_model import take_tables
 
     model = lag_face.model
     fps = model.fps

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib.calibration_file import read_calibration
-from calib.triangulation import triangulate
+from mocap.calib.calibration_file import read_calibration
+from mocap.calib.triangulation import triangulate
 from conftest import make_session
 from mocap.reconstruct.correspondence import reconstruct_points
 from mocap.reconstruct.labeling import identify_markers

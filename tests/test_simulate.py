@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from analysis.response import normalized_sigmoid
-from calib.calibration_file import read_calibration
+from mocap.analysis.response import normalized_sigmoid
+from mocap.calib.calibration_file import read_calibration
 from mocap.schedules import identification_battery, sample_commands, trapezoid
 from mocap.simulate import HiddenEffect
 from mocap.simulate.face import make_face

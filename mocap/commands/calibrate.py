@@ -28,9 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calib.calibration_file import write_calibration
-    from calib.opencv_yaml import write_opencv_yaml
-    from calib.wand_calibration import CalibrationError, calibrate_session
+    from mocap.calib.calibration_file import write_calibration
+    from mocap.calib.opencv_yaml import write_opencv_yaml
+    from mocap.calib.wand_calibration import CalibrationError, calibrate_session
     from mocap.session import SessionError, load_session
 
     def say(msg: str) -> None:

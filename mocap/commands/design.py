@@ -88,7 +88,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _timing(args):
-    from analysis.design import PlanTiming
+    from mocap.analysis.design import PlanTiming
 
     steps = args.steps
     if args.duration_s is not None:
@@ -102,7 +102,7 @@ def _responses(source: Path, dus):
 
     import pandas as pd
 
-    from analysis.design import SigmoidPair
+    from mocap.analysis.design import SigmoidPair
 
     props_path = source / "properties.csv"
     if not props_path.is_file():
@@ -122,7 +122,7 @@ def _responses(source: Path, dus):
 
 
 def _paper_rows(plan, plan_file, responses, timing, dus):
-    from analysis.design import paper_design, paper_design_series
+    from mocap.analysis.design import paper_design, paper_design_series
 
     if plan_file is None:
         return paper_design(plan, responses, timing, dus)
@@ -134,7 +134,7 @@ def _paper_rows(plan, plan_file, responses, timing, dus):
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.plans import PLAN_NAMES
+    from mocap.analysis.plans import PLAN_NAMES
     from mocap.atomic import write_csv
     from mocap.session import SessionError
 
@@ -188,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_model(args, plan, plan_file, dus, timing) -> int:
     import time
 
-    from analysis.model_design import (
+    from mocap.analysis.model_design import (
         design_commands,
         file_reference,
         marker_weights,
@@ -246,8 +246,8 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
 
 
 def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
-    from analysis.figures import design_comparison
-    from analysis.model_design import evaluate_design
+    from mocap.analysis.figures import design_comparison
+    from mocap.analysis.model_design import evaluate_design
     from mocap.design_io import play_virtual, virtual_face_of
 
     sim = virtual_face_of(args.source)

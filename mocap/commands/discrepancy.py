@@ -30,7 +30,7 @@ examples:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from analysis.model_effects import CATALOGUE
+    from mocap.analysis.model_effects import CATALOGUE
 
     p.add_argument("path", type=Path, help="session directory or mocap run output directory")
     p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -48,8 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from analysis.discrepancy import DiscrepancySettings
-    from analysis.model_effects import CATALOGUE
+    from mocap.analysis.discrepancy import DiscrepancySettings
+    from mocap.analysis.model_effects import CATALOGUE
     from mocap.discrepancy_io import run as run_workflow
     from mocap.session import SessionError
 

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calib.wand_calibration import CalibrationError
+    from mocap.calib.wand_calibration import CalibrationError
     from mocap.pipeline import run_session
     from mocap.session import SessionError
 

@@ -33,11 +33,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from calib.camera import CameraRig, camera_index
-from calib.triangulation_kernel import triangulate_normalized
+from mocap.calib.camera import CameraRig, camera_index
+from mocap.calib.triangulation_kernel import triangulate_normalized
 from mocap.reconstruct import correspondence_kernel as kern
 
-_UNDISTORT_ITERATIONS = 20  # as calib.camera.undistort_normalized
+_UNDISTORT_ITERATIONS = 20  # as mocap.calib.camera.undistort_normalized
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,7 @@ class Points3D:
 def blob_camera_index(camera: pd.Series, camera_ids) -> np.ndarray:
     """(n,) int index into ``camera_ids`` of every blob's camera id, -1 for ids not in the list.
 
-    As :func:`calib.camera.camera_index`, in one pyarrow pass over string columns (a take's
+    As :func:`mocap.calib.camera.camera_index`, in one pyarrow pass over string columns (a take's
     Arrow-backed ``camera`` column is not copied): ~4 x faster on a paper take's 400 k blobs.
     """
     arr = pa.array(camera, from_pandas=True)

@@ -2,14 +2,14 @@
 
 Each kernel runs over every blob or candidate of a take in one call (one Python call per camera
 pair, none per frame or point); :mod:`mocap.reconstruct.correspondence` chains them with the
-fused triangulation kernel (:func:`calib.triangulation_kernel.triangulate_normalized`). The
+fused triangulation kernel (:func:`mocap.calib.triangulation_kernel.triangulate_normalized`). The
 mathematics are those of the NumPy reference (:mod:`mocap.reconstruct.reference`) operation for
 operation, so both find the same correspondences (a test checks it).
 
 Conventions: blobs are indexed by their row in the take's blob table; ``cam`` (n,) int camera
 index, ``fidx`` (n,) int frame index (frame - first frame); cameras are packed as ``K`` (C, 3, 3)
 px, ``dist`` (C, 5) Brown-Conrady, ``R`` (C, 3, 3), ``t`` (C, 3) mm (camera-from-world, as
-:class:`calib.camera.Camera`). Blobs of one camera and frame form a bucket ``k = cam * n_frames +
+:class:`mocap.calib.camera.Camera`). Blobs of one camera and frame form a bucket ``k = cam * n_frames +
 fidx``; ``ptr`` (C * n_frames + 1,) gives each bucket's slice of the ordering arrays.
 Kernels are compiled on first use and cached on disk (``cache=True``).
 """
@@ -28,7 +28,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
     """Distorted pixels -> undistorted normalised coordinates and world viewing rays.
 
     uv (n, 2) px; cam (n,) int; returns xn (n, 2) and ray (n, 3) unit vectors (world frame).
-    Same fixed-point undistortion as :func:`calib.camera.undistort_normalized`, run on blocks of
+    Same fixed-point undistortion as :func:`mocap.calib.camera.undistort_normalized`, run on blocks of
     blobs (so the iteration vectorises) for at most ``iterations`` rounds, stopping once a round
     leaves the whole block unchanged (further rounds would change nothing).
     """
@@ -314,7 +314,7 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
 def _project(K, dist, R, t, c, X0, X1, X2):
     """World point (mm) -> distorted pixel (px) in camera c; NaN behind the camera.
 
-    Same operations as :meth:`calib.camera.Camera.project`.
+    Same operations as :meth:`mocap.calib.camera.Camera.project`.
     """
     xc = X0 * R[c, 0, 0] + X1 * R[c, 0, 1] + X2 * R[c, 0, 2] + t[c, 0]
     yc = X0 * R[c, 1, 0] + X1 * R[c, 1, 1] + X2 * R[c, 1, 2] + t[c, 1]

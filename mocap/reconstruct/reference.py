@@ -20,8 +20,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from calib.camera import CameraRig, camera_index
-from calib.triangulation_kernel import triangulate_normalized
+from mocap.calib.camera import CameraRig, camera_index
+from mocap.calib.triangulation_kernel import triangulate_normalized
 from mocap.reconstruct.correspondence import (
     BlobTable,
     Points3D,

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from calib.camera import CameraRig
+from mocap.calib.camera import CameraRig
 
 MAX_VIEW_ANGLE_DEG = 75.0
 GHOST = -1

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from analysis.hysteresis import play
+from mocap.analysis.hysteresis import play
 
 EFFECTS: dict[str, tuple[str, float, str]] = {
     # name: (parameter, default strength, unit)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from analysis.hysteresis import play
+from mocap.analysis.hysteresis import play
 from mocap.simulate.dus import DU_BY_ID
 
 FACE_CENTER = np.array([35.0, 145.0, 0.0])  # mm, world

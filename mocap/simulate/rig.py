@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.camera import Camera, CameraRig
+from mocap.calib.camera import Camera, CameraRig
 
 VOLUME_CENTER = np.array([40.0, 120.0, 40.0])  # mm: between the ground square and the face
 VOLUME_HALF_MM = np.array([220.0, 190.0, 170.0])  # where the wand is waved

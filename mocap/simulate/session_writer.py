@@ -33,8 +33,8 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from analysis.design import PlanTiming, SigmoidPair, paper_design
-from calib.calibration_file import write_calibration
+from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
+from mocap.calib.calibration_file import write_calibration
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.schedules import identification_battery, trapezoid
@@ -208,8 +208,8 @@ def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: floa
     Per DU: the mean over the session's trials of the true responses to the paper's trapezoid
     (each trial with its own trial-to-trial variation and the hidden effect, as the pipeline
     averages them, but without the skin's frame-to-frame jitter and without measurement noise),
-    normalised like the pipeline's (``analysis.displacement.normalized_along``), fitted by the
-    same code (``analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
+    normalised like the pipeline's (``mocap.analysis.displacement.normalized_along``), fitted by the
+    same code (``mocap.analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
     marker names, e.g. the ones the pipeline fitted) when given; else those whose true peak
     displacement reaches ``min_displacement_mm`` (default: the pipeline's signal-to-noise rule at
     the nominal noise, 20 x 0.025 mm / sqrt(trials), and at least 0.05 mm), the nose-bridge marker
@@ -217,8 +217,8 @@ def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: floa
     """
     if min_displacement_mm is None:
         min_displacement_mm = max(0.05, 20.0 * 0.025 / np.sqrt(cfg.n_trials))
-    from analysis.displacement import normalized, normalized_along
-    from analysis.properties import du_properties
+    from mocap.analysis.displacement import normalized, normalized_along
+    from mocap.analysis.properties import du_properties
     from mocap.reconstruct.trials import NORMALISE_S
     from mocap.schedules import sample_commands
 
