@@ -116,17 +116,21 @@ class HiddenEffect:
         return 0.0
 
     # -- stage 3: displacement -------------------------------------------------------------
-    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                     paths=None) -> np.ndarray:
         """Marker displacements (n_samples, n_markers, 3) mm.
 
         y : (n_samples, n_dus, n_markers) normalised responses of the take's DUs.
         D : (n_dus, n_markers, 3) their peak vectors, mm.
         normals : (n_markers, 3) skin normals (for the sideways direction of ``curvature``).
+        paths : None for straight paths (d = y D per DU), else ``paths(y) -> (n_samples, n_dus,
+            n_markers, 3)`` the face family's per-DU displacements.
         """
-        return compose_displacement((self,), y, D, normals)
+        return compose_displacement((self,), y, D, normals, paths)
 
 
-def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                         paths=None) -> np.ndarray:
     """Stage 3 of any set of effects: coupling scales y, curvature adds a bow, saturation caps.
 
     Shapes as :meth:`HiddenEffect.displacement`. Effects absent from ``effects`` are identity.
@@ -140,7 +144,7 @@ def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndar
         y_eff = y * (1.0 - by_name["coupling"] * others)
     else:
         y_eff = y
-    d = np.einsum("snm,nmk->smk", y_eff, D)
+    d = np.einsum("snm,nmk->smk", y_eff, D) if paths is None else paths(y_eff).sum(axis=1)
     if "curvature" in by_name:
         side = np.cross(normals[None], D)  # (N, M, 3) perpendicular, tangent
         norm = np.linalg.norm(side, axis=-1, keepdims=True)
@@ -202,8 +206,9 @@ class CombinedEffect:
     def beta_shift(self, trial: int) -> float:
         return float(sum(e.beta_shift(trial) for e in self.effects))
 
-    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        return compose_displacement(self.effects, y, D, normals)
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                     paths=None) -> np.ndarray:
+        return compose_displacement(self.effects, y, D, normals, paths)
 
 
 def make_effect(names, strengths=None):

@@ -12,8 +12,13 @@
 - ``face.parquet``: per DU and marker the true peak displacement vector and response parameters;
 - ``properties.csv``: the paper's indices of the true face per DU, defined as the estimator
   defines them (``true_properties``);
-- ``truth.json``: the configuration, seed, hidden effect and its equation's parameters, the
-  nose-bridge marker, the degraded camera, per-take metadata.
+- ``truth.json``: the configuration, seed, face family (``face_family``: the family drawn when
+  the configuration asked for ``random``, with its settings), hidden effect and its equation's
+  parameters, the nose-bridge marker, the degraded camera, per-take metadata (with each DU's
+  common bias shift in the take, ``bias_shift``, and the family's part of it, ``family_shift``,
+  command units).
+
+The session itself never names the face family.
 
 Every take gets its own random stream (seeded by the session seed and the take's name), so a
 session is deterministic for a seed and one take does not change when others are added.
@@ -42,7 +47,8 @@ from mocap.simulate.capture import observe
 from mocap.simulate.config import SimConfig
 from mocap.simulate.dus import DU_BY_ID
 from mocap.simulate.face import VirtualFace, make_face
-from mocap.simulate.motion import true_positions
+from mocap.simulate.families import family_stream, resolve_family
+from mocap.simulate.motion import true_positions, true_take
 from mocap.simulate.rig import GROUND_MARKERS_MM, WAND_OFFSETS_MM, make_rig, wand_motion
 
 RESPONSE_TAIL_S = 0.05  # one more step at 0 after the trapezoid's last row
@@ -197,7 +203,9 @@ def virtual_rig_and_face(cfg: SimConfig):
     """The true rig and face of a configuration (what ``simulate`` draws first)."""
     master = np.random.default_rng(cfg.seed)
     rig = make_rig(master, cfg.n_cameras, width=cfg.width, height=cfg.height)
-    face = make_face(master, cfg.n_markers, cfg.du_ids)
+    family = resolve_family(cfg.face_family, cfg.seed)
+    face = make_face(master, cfg.n_markers, cfg.du_ids, family=family,
+                     family_rng=family_stream(cfg.seed, "traits"))
     return master, rig, face
 
 
@@ -284,6 +292,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     n_blobs_total = 0
     for i, t in enumerate(takes, start=1):
         rng = take_rng(cfg.seed, t.name)
+        shifts = {}
         n_frames = int(round(t.duration_s * cfg.fps))
         if t.kind == "wand":
             pos = wand_motion(rng, n_frames, cfg.fps, WAND_OFFSETS_MM)
@@ -297,7 +306,10 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
             names = [f"G{k + 1}" for k in range(pos.shape[1])]
             normals, allow, jit, obs_points = None, None, None, pos
         else:
-            pos = true_positions(face, cfg.effect, t.rows, n_frames, cfg.fps, t.trial or 1, rng)
+            tt = true_take(face, cfg.effect, t.rows, n_frames, cfg.fps, t.trial or 1, rng)
+            pos = tt.positions
+            shifts = {"bias_shift": {str(d): float(v) for d, v in zip(tt.dus, tt.bias_shift)},
+                      "family_shift": {str(d): float(v) for d, v in zip(tt.dus, tt.family_shift)}}
             names = list(face.marker_names)
             normals, allow, jit, obs_points = face.normals, allowed, jitter, pos
         write_parquet(_long(t.name, names, pos), truth / "trajectories" / f"{t.name}.parquet")
@@ -333,7 +345,8 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         n_blobs_total += n_rows
         take_meta.append({"name": t.name, "kind": t.kind, "frames": n_frames, "rows": n_rows,
                           "du": t.du, "trial": t.trial, "plan": t.plan, "purpose": t.purpose,
-                          "dus": sorted(set(int(d) for d in t.rows["du"])) if t.rows is not None else []})
+                          "dus": sorted(set(int(d) for d in t.rows["du"])) if t.rows is not None else [],
+                          **shifts})
         say(f"[{i}/{len(takes)}] {t.name}: {n_frames} frames, {n_rows} rows")
 
     if not cfg.labeled:
@@ -347,6 +360,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     info = {
         "generator": f"facemocap {__version__} mocap simulate",
         "config": _jsonable(dataclasses.asdict(cfg)),
+        "face_family": {**face.family.describe(), "requested": cfg.face_family},
         "effect": cfg.effect.describe(),
         "nose_bridge_marker": face.marker_names[face.nose_bridge],
         "nose_bridge_cameras": [rig.ids[i] for i in nb_cams],
@@ -367,7 +381,15 @@ def labeled_noise(rng, shape, sd_mm, extra_mm):
 
 
 def face_table(face: VirtualFace) -> pd.DataFrame:
+    """Per DU and marker: rest position, peak vector, response parameters (and the family's
+    traits, ``alpha_bwd`` and the path vector ``path_x/y/z`` mm, for families other than pi)."""
     n, m = face.alpha.shape
+    extra = {}
+    if face.traits is not None:
+        extra = {"alpha_bwd": face.traits.alpha_bwd.ravel(),
+                 "path_x": face.traits.path_vec[..., 0].ravel(),
+                 "path_y": face.traits.path_vec[..., 1].ravel(),
+                 "path_z": face.traits.path_vec[..., 2].ravel()}
     return pd.DataFrame({
         "du": np.repeat(face.du_ids, m),
         "marker": np.tile(face.marker_names, n),
@@ -381,6 +403,7 @@ def face_table(face: VirtualFace) -> pd.DataFrame:
         "alpha": face.alpha.ravel(),
         "beta": face.beta.ravel(),
         "r_half": face.r_half.ravel(),
+        **extra,
     })
 
 
