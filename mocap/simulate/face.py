@@ -185,7 +185,7 @@ class VirtualFace:
             w = np.exp(-0.5 * PREISACH_ETA**2)
             mu = beta[..., None] + PREISACH_CENTRE_SLOPE * (h - r[..., None])
             spread = np.pi / np.sqrt(3.0) / alpha
-            return ops.preisach_gaussian(a, h, w / w.sum(), mu, spread)[::step]
+            return ops.preisach_gaussian(a, h, w / w.sum(), mu, spread, step=step)
         if hyst == "boucwen":
             z = ops.bouc_wen_state(x, BOUC_WEN_B / r, BOUC_WEN_G / r)[::step]
             return ops.logistic01(x[::step] - z, alpha, beta)

@@ -30,6 +30,7 @@ A - (b - g) zeta for zeta < 0, both linear.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.special import ndtr
 
 BOUC_WEN_A = 0.5  # the Bouc-Wen state's elastic slope (what makes x - z monotone for b <= 3 g)
@@ -38,19 +39,36 @@ BOUC_WEN_A = 0.5  # the Bouc-Wen state's elastic slope (what makes x - z monoton
 def play(x: np.ndarray, r, y0=0.0) -> np.ndarray:
     """Play (backlash) operator of half-width ``r`` along axis 0.
 
-    x : (n_samples, ...) input; r : half-widths >= 0 broadcastable to ``x.shape[1:]``;
-    y0 : initial state. Returns (n_samples, ...) float.
+    x : (n_samples, ...) input; r : half-widths >= 0 and y0 : initial states, both broadcast with
+    ``x.shape[1:]``. Returns (n_samples, *shape) float, shape the broadcast of the three. x is
+    never materialised at the broadcast shape (compiled loop over samples).
     """
     x = np.asarray(x, float)
     r = np.asarray(r, float)
     if np.any(r < 0):
         raise ValueError(f"play: expected half-widths r >= 0, got min {r.min()}")
     shape = np.broadcast_shapes(x.shape[1:], r.shape, np.shape(y0))
-    out = np.empty((x.shape[0],) + shape)
-    p = np.broadcast_to(np.asarray(y0, float), shape).copy()
-    for k in range(x.shape[0]):
-        p = np.clip(p, x[k] - r, x[k] + r)
-        out[k] = p
+    col = np.broadcast_to(np.arange(int(np.prod(x.shape[1:], dtype=int))).reshape(x.shape[1:]), shape)
+    out = _play_kernel(np.ascontiguousarray(x.reshape(x.shape[0], -1)),
+                       np.ascontiguousarray(np.broadcast_to(r, shape)).ravel(),
+                       np.ascontiguousarray(np.broadcast_to(np.asarray(y0, float), shape)).ravel(),
+                       np.ascontiguousarray(col).ravel())
+    return out.reshape((x.shape[0],) + shape)
+
+
+@njit(cache=True)
+def _play_kernel(x, r, y0, col):
+    n = x.shape[0]
+    m = r.shape[0]
+    out = np.empty((n, m))
+    for j in range(m):
+        p = y0[j]
+        c = col[j]
+        for k in range(n):
+            lo = x[k, c] - r[j]
+            hi = x[k, c] + r[j]
+            p = min(max(p, lo), hi)
+            out[k, j] = p
     return out
 
 
@@ -63,11 +81,9 @@ def pi_mean(x: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
 
 
 def _lift(x, nodes):
-    """x (n_samples, *a) broadcast to (n_samples, *nodes.shape) for nodes of shape (*a, *b)."""
+    """x (n_samples, *a) reshaped to (n_samples, *a, 1, ...) to broadcast with nodes (*a, *b)."""
     x = np.asarray(x, float)
-    nodes = np.asarray(nodes)
-    xr = x.reshape(x.shape + (1,) * (nodes.ndim - x.ndim + 1))
-    return np.broadcast_to(xr, x.shape[:1] + nodes.shape)
+    return x.reshape(x.shape + (1,) * (np.ndim(nodes) - x.ndim + 1))
 
 
 def logistic01(x, alpha, beta):
@@ -88,23 +104,35 @@ def branch_play(x: np.ndarray, fwd, bwd) -> np.ndarray:
     b = bwd(x)
     lo = np.minimum(f, b)
     hi = np.maximum(f, b)
-    out = np.empty_like(lo)
-    y = np.zeros(lo.shape[1:])
-    for k in range(lo.shape[0]):
-        y = np.clip(y, lo[k], hi[k])
-        out[k] = y
+    n = lo.shape[0]
+    out = _clip_chain(np.ascontiguousarray(lo.reshape(n, -1)), np.ascontiguousarray(hi.reshape(n, -1)))
+    return out.reshape(lo.shape)
+
+
+@njit(cache=True)
+def _clip_chain(lo, hi):
+    """y_k = clip(y_{k-1}, lo_k, hi_k) from y_{-1} = 0, per column of (n_samples, m) arrays."""
+    n, m = lo.shape
+    out = np.empty((n, m))
+    for j in range(m):
+        y = 0.0
+        for k in range(n):
+            y = min(max(y, lo[k, j]), hi[k, j])
+            out[k, j] = y
     return out
 
 
-def preisach_gaussian(x: np.ndarray, half_widths, weights, centres, spread) -> np.ndarray:
+def preisach_gaussian(x: np.ndarray, half_widths, weights, centres, spread,
+                      step: int = 1) -> np.ndarray:
     """Preisach output with a Gaussian relay density, normalised to 0 at rest, 1 at full command.
 
     x : (n_samples, ...) input. half_widths, weights, centres : (..., n_h) the density's half-width
     nodes h_j (>= 0), their weights w_j and the mean relay centre mu_j on each; spread : (...)
-    the centres' standard deviation s (command units). Returns (n_samples, ...).
+    the centres' standard deviation s (command units). Returns every ``step``-th sample
+    (n_out, ...).
     """
     h = np.asarray(half_widths, float)
-    p = play(_lift(x, h), h, 0.0)  # (n_samples, ..., n_h)
+    p = play(_lift(x, h), h, 0.0)[::step]  # (n_out, ..., n_h)
     s = np.asarray(spread, float)[..., None]
     w = np.asarray(weights, float)
     mu = np.asarray(centres, float)
@@ -119,35 +147,45 @@ def bouc_wen_state(x: np.ndarray, b, g, A: float = BOUC_WEN_A) -> np.ndarray:
 
     dz = A dx - b |dx| z - g dx |z| (n = 1); b, g (1 / command unit) broadcast against
     ``x.shape[1:]``, with b + g > 0 and b != g; |z| <= A / (b + g). Each sample's increment is
-    integrated exactly.
+    integrated exactly (compiled loop over samples).
     """
     x = np.asarray(x, float)
-    b = np.asarray(b, float)
-    g = np.asarray(g, float)
-    shape = np.broadcast_shapes(x.shape[1:], b.shape, g.shape)
-    kp = np.broadcast_to(b + g, shape)   # rate once zeta >= 0
-    kn = np.broadcast_to(b - g, shape)   # rate while zeta < 0 (right after a reversal)
+    shape = np.broadcast_shapes(x.shape[1:], np.shape(b), np.shape(g))
+    kp = np.broadcast_to(np.asarray(b, float) + g, shape)
+    kn = np.broadcast_to(np.asarray(b, float) - g, shape)
     if np.any(kp <= 0) or np.any(kn == 0):
         raise ValueError("bouc_wen_state: expected b + g > 0 and b != g")
-    out = np.empty((x.shape[0],) + shape)
-    z = np.zeros(shape)
-    prev = np.zeros(shape)
-    for k in range(x.shape[0]):
-        dx = x[k] - prev
-        prev = np.broadcast_to(x[k], shape)
-        s = np.where(dx < 0, -1.0, 1.0)
-        u = np.abs(dx)
-        zeta = s * z
-        # phase 1 (zeta < 0): zeta(u) = zeta0 e^{-kn u} + A (1 - e^{-kn u}) / kn, reaching 0 at u0
-        neg = zeta < 0
-        u0 = np.where(neg, np.log1p(np.where(neg, -kn * zeta / A, 0.0)) / kn, 0.0)
-        u1 = np.minimum(u, u0)
-        zeta = np.where(neg, zeta * np.exp(-kn * u1) - A * np.expm1(-kn * u1) / kn, zeta)
-        zeta = np.where(neg & (u >= u0), 0.0, zeta)
-        # phase 2 (zeta >= 0): zeta(u) = A / kp + (zeta - A / kp) e^{-kp u}
-        u2 = np.where(neg, np.maximum(u - u0, 0.0), u)
-        pos = zeta >= 0
-        zeta = np.where(pos, A / kp + (zeta - A / kp) * np.exp(-kp * u2), zeta)
-        z = s * zeta
-        out[k] = z
+    xf = np.ascontiguousarray(np.broadcast_to(x, x.shape[:1] + shape).reshape(x.shape[0], -1))
+    out = _bouc_wen_kernel(xf, np.ascontiguousarray(kp).ravel(), np.ascontiguousarray(kn).ravel(),
+                           float(A))
+    return out.reshape(x.shape[:1] + shape)
+
+
+@njit(cache=True)
+def _bouc_wen_kernel(x, kp, kn, A):
+    n, m = x.shape
+    out = np.empty((n, m))
+    for j in range(m):
+        z = 0.0
+        prev = 0.0
+        for k in range(n):
+            dx = x[k, j] - prev
+            prev = x[k, j]
+            s = -1.0 if dx < 0 else 1.0
+            u = abs(dx)
+            zeta = s * z
+            if zeta < 0:
+                # zeta(u) = zeta0 e^{-kn u} + A (1 - e^{-kn u}) / kn, reaching 0 at u0
+                u0 = np.log1p(-kn[j] * zeta / A) / kn[j]
+                if u < u0:
+                    zeta = zeta * np.exp(-kn[j] * u) - A * np.expm1(-kn[j] * u) / kn[j]
+                    u = 0.0
+                else:
+                    zeta = 0.0
+                    u = u - u0
+            if zeta >= 0 and u > 0:
+                # zeta(u) = A / kp + (zeta - A / kp) e^{-kp u}
+                zeta = A / kp[j] + (zeta - A / kp[j]) * np.exp(-kp[j] * u)
+            z = s * zeta
+            out[k, j] = z
     return out
