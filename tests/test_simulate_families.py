@@ -356,3 +356,137 @@ def test_simulate_cli_face_family(tmp_path):
     info = json.loads((out / "truth" / "truth.json").read_text())
     assert info["face_family"]["name"] == "boucwen-offchord"
     assert info["config"]["labeled_noise_mm"] == 0.05
+
+
+# ---- the hidden effects' alt forms ------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def face():
+    return make_face(np.random.default_rng(3), 40, DUS)
+
+
+def _y(face, effect, rows, n_frames=606, trial=1):
+    return normalized_response(face, effect, rows, n_frames, FPS, trial)[1]
+
+
+def _d(face, effect, rows, n_frames=606):
+    return true_take(face, effect, rows, n_frames, FPS, 1, None).positions - face.rest_mm
+
+
+def test_alt_lag_is_a_critically_damped_second_order():
+    from mocap.schedules import sample_commands
+
+    rows = pd.DataFrame({"time_s": [0.0], "du": [4], "command": [255]})
+    t = np.arange(2000) / (FPS * 4)
+    tau = 0.08
+    a = HiddenEffect("lag", tau, "alt").command(sample_commands(rows, [4], t), t, None)[:, 0]
+    # the step response of (tau/2 s + 1)^-2, sampled exactly
+    x = t / (tau / 2)
+    np.testing.assert_allclose(a, 255 * (1 - np.exp(-x) * (1 + x)), atol=1e-9)
+    # tau is its mean delay: the area between the step and the response
+    assert np.trapezoid(255 - a, t) / 255 == pytest.approx(tau, rel=0.01)
+
+
+def test_alt_deadtime_is_a_distributed_delay_with_mean_l():
+    from mocap.schedules import sample_commands
+
+    rows = pd.DataFrame({"time_s": [0.0, 0.5], "du": [4, 4], "command": [0, 255]})
+    t = np.arange(4800) / (FPS * 4)
+    L = 0.1
+    sampler = lambda times: sample_commands(rows, [4], times)
+    a = HiddenEffect("deadtime", L, "alt").command(sampler(t), t, sampler)[:, 0]
+    ramp = 255 * np.clip((t - 0.5 - 0.75 * L) / (0.5 * L), 0, 1)
+    assert np.abs(a - ramp).max() <= 255 / 16 + 1e-9  # a 16-tap boxcar of width L / 2
+    assert np.all(a[t < 0.5 + 0.75 * L - 1e-9] == 0) and np.all(a[t >= 0.5 + 1.25 * L] == 255)
+    assert np.trapezoid(255 * (t >= 0.5) - a, t) / 255 == pytest.approx(L, rel=0.02)
+
+
+def test_alt_backlash_sticks_then_slips_to_the_command():
+    c = np.r_[np.arange(0, 201, 10), np.arange(190, 99, -10)].astype(float)[:, None]
+    b = 12.0
+    a = HiddenEffect("backlash", b, "alt").command(c, np.arange(len(c)) / FPS, None)[:, 0]
+    top = 20
+    np.testing.assert_array_equal(a[: top + 1], c[: top + 1, 0])  # follows on the way up
+    back = 200 - c[top + 1:, 0]  # how far the command has come back
+    np.testing.assert_array_equal(a[top + 1:][back < 2 * b], 200.0)  # holds inside 2 b
+    np.testing.assert_array_equal(a[top + 1:][back >= 2 * b], c[top + 1:, 0][back >= 2 * b])
+    # the model's play instead stays b behind the command
+    p = HiddenEffect("backlash", b).command(c, np.arange(len(c)) / FPS, None)[:, 0]
+    assert p[-1] == pytest.approx(c[-1, 0] + b)
+
+
+def test_alt_coupling_is_a_product_of_the_drives_at_every_marker(face):
+    from mocap.schedules import trapezoid as trap
+
+    kappa = 0.35
+    e = HiddenEffect("coupling", kappa, "alt")
+    rows = pd.concat([trap(1), trap(4)], ignore_index=True)
+    both = _d(face, e, rows)
+    d_a, d_b = _d(face, e, trap(1)), _d(face, e, trap(4))
+    y_a = _y(face, HiddenEffect(), trap(1))[:, 0, :, None]
+    y_b = _y(face, HiddenEffect(), trap(4))[:, 0, :, None]
+    np.testing.assert_allclose(both, d_a * (1 - kappa * y_b) + d_b * (1 - kappa * y_a), atol=1e-9)
+    hold = slice(300, 400)
+    assert np.abs(both[hold] - (1 - kappa) * (d_a + d_b)[hold]).max() < 0.02 * np.abs(d_a + d_b).max()
+
+
+def test_alt_saturation_compresses_each_du_before_the_sum(face):
+    from mocap.schedules import trapezoid as trap
+
+    L = 2.0
+    e = HiddenEffect("saturation", L, "alt")
+    d, d0 = _d(face, e, trap(12)), _d(face, HiddenEffect(), trap(12))
+    m, m0 = np.linalg.norm(d, axis=-1), np.linalg.norm(d0, axis=-1)
+    np.testing.assert_allclose(m, m0 / np.sqrt(1 + (m0 / L) ** 2), atol=1e-12)
+    assert m.max() < L and m0.max() > 3.0
+    rows = pd.concat([trap(7), trap(12)], ignore_index=True)
+    both = _d(face, e, rows)
+    parts = _d(face, e, trap(7)) + _d(face, e, trap(12))
+    np.testing.assert_allclose(both, parts, atol=1e-12)  # per DU, then summed
+
+
+def test_alt_drift_moves_each_markers_bias_with_mean_k(face):
+    from mocap.schedules import sample_commands
+    from mocap.schedules import trapezoid as trap
+    from mocap.simulate.effects_alt import marker_drift_weights
+
+    k = 4.0
+    e = HiddenEffect("drift", k, "alt")
+    y3 = _y(face, e, trap(7), trial=3)
+    np.testing.assert_allclose(_y(face, e, trap(7), trial=1), _y(face, HiddenEffect(), trap(7)))
+    i = np.array([face.du_index(7)])
+    w = face.hysteresis_state(sample_commands(trap(7), [7], np.arange(606 * 4) / (FPS * 4)), i)[::4]
+    shift = 2 * k * (1 + 0.5 * np.sqrt(2) * np.sin(2.39996 * np.arange(face.n_markers)))
+    np.testing.assert_allclose(y3, face.static_map(w, i, beta_shift=shift), atol=1e-12)
+    wts = marker_drift_weights(face.n_markers)
+    assert abs(wts.mean() - 1) < 0.05 and wts.std() > 0.4  # xi_m / 2: rms 0.5
+
+
+def test_alt_curvature_is_a_skewed_bow(face):
+    from mocap.schedules import trapezoid as trap
+
+    kappa = 0.3
+    d = _d(face, HiddenEffect("curvature", kappa, "alt"), trap(7))
+    d0 = _d(face, HiddenEffect(), trap(7))
+    D = face.D_mm[face.du_index(7)]
+    y = _y(face, HiddenEffect(), trap(7))[:, 0]
+    side = d - d0
+    assert np.abs(np.einsum("fmk,mk->fm", side, D)).max() < 1e-9
+    np.testing.assert_allclose(np.linalg.norm(side, axis=-1),
+                               6.75 * kappa * y * (1 - y) ** 2 * np.linalg.norm(D, axis=-1), atol=1e-9)
+
+
+def test_alt_effect_recorded_in_the_truth(tmp_path):
+    from mocap.cli import main
+
+    out = tmp_path / "alt"
+    assert main(["simulate", str(out), "--dus", "4,7", "--trials", "1", "--markers", "12",
+                 "--no-battery", "--labeled", "--effect", "lag,coupling", "--effect-form", "alt",
+                 "--face-family", "branchplay-bow"]) == 0
+    info = json.loads((out / "truth" / "truth.json").read_text())
+    forms = {e["name"]: e["form"] for e in info["effect"]["effects"]}
+    assert forms == {"lag": "alt", "coupling": "alt"}
+    assert all("alt_equation" in e for e in info["effect"]["effects"])
+    assert info["effect"]["parameters"] == {"lag": {"tau_s": 0.08}, "coupling": {"kappa": 0.35}}
+    with pytest.raises(ValueError, match="form"):
+        HiddenEffect("lag", 0.1, "other")

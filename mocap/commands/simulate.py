@@ -19,6 +19,7 @@ examples:
   mocap simulate out/two --preset small --effect lag,drift       # two hidden effects at once
   mocap simulate out/pb --preset small --face-family preisach-bow --labeled --labeled-noise-mm 0.03
   mocap simulate out/any --preset small --face-family random     # the family goes to truth/ only
+  mocap simulate out/alt --preset small --effect coupling --effect-form alt
   mocap simulate out/paper --preset paper            # the full study, Parquet takes
   mocap simulate out/designed --preset small --commands commands.csv
 """
@@ -42,6 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the base face's family: hysteresis-path among "
                         f"{', '.join(FAMILY_NAMES[1:-1])}; pi (default: the face of earlier "
                         "versions); random (drawn from the seed, named in truth/ only)")
+    p.add_argument("--effect-form", choices=["model", "alt"], default="model",
+                   help="the hidden effects' equations: model (default) or alt, a second form "
+                        "with the same parameters that the analysis model does not share")
     p.add_argument("--labeled", action="store_true", help="write labeled 3D takes (no cameras)")
     p.add_argument("--labeled-noise-mm", type=float, default=None,
                    help="measurement noise sd per axis of labeled takes, mm (default 0.02)")
@@ -75,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         overrides = dict(
             seed=args.seed,
-            effect=make_effect(args.effect, args.strength),
+            effect=make_effect(args.effect, args.strength, args.effect_form),
             labeled=args.labeled or None,
             labeled_noise_mm=args.labeled_noise_mm,
             face_family=args.face_family,

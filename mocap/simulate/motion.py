@@ -43,7 +43,7 @@ def normalized_response(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFr
         return sample_commands(rows, dus, times)
 
     a = effect.command(sampler(t), t, sampler)
-    shift = effect.beta_shift(trial)
+    shift = effect.beta_shift(trial, face.n_markers)
     if beta_jitter is not None:
         shift = shift + beta_jitter[:, None]
     return dus, face.response(a, rows_idx, beta_shift=shift, step=OVERSAMPLE)
