@@ -490,3 +490,71 @@ def test_alt_effect_recorded_in_the_truth(tmp_path):
     assert info["effect"]["parameters"] == {"lag": {"tau_s": 0.08}, "coupling": {"kappa": 0.35}}
     with pytest.raises(ValueError, match="form"):
         HiddenEffect("lag", 0.1, "other")
+
+
+# ---- layering: the truth is made without the analysis -----------------------------------------
+
+SIMULATOR_MAY_IMPORT = ("mocap.simulate", "mocap.schedules", "mocap.atomic", "mocap.session",
+                        "mocap.calib")
+
+
+def test_simulator_imports_nothing_from_the_analysis():
+    import ast
+    from pathlib import Path
+
+    import mocap.simulate
+
+    bad = []
+    for path in sorted(Path(mocap.simulate.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module] if node.module != "mocap" else [f"mocap.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] != "mocap" or name == "mocap.__version__":
+                    continue
+                if not name.startswith(SIMULATOR_MAY_IMPORT):
+                    bad.append(f"{path.name}:{node.lineno} imports {name}")
+    assert not bad, bad
+
+
+def test_simulating_a_session_loads_no_analysis_module(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys; from mocap.simulate import SimConfig, make_effect, simulate; "
+            "simulate(SimConfig(du_ids=(4, 7), n_trials=1, n_markers=10, battery=False, "
+            "labeled=True, motion_plans=('A',), face_family='preisach-bow', "
+            "effect=make_effect('lag,coupling', form='alt')), sys.argv[1]); "
+            "print(sorted(m for m in sys.modules if m.startswith(('mocap.analysis', "
+            "'mocap.reconstruct', 'mocap.pipeline'))))")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s")], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
+
+
+def test_realised_drift_is_the_drift_plus_the_recorded_shifts(tmp_path):
+    from mocap.simulate import make_effect
+    from mocap.simulate.truth import effect_parameters, realised_bias_drift
+
+    root = small_labeled(tmp_path / "d", "pi-bow", du_ids=(7,), n_trials=4,
+                         effect=make_effect("drift", 2.0))
+    info = json.loads((root / "truth" / "truth.json").read_text())
+    assert effect_parameters(info) == {"drift": {"beta_per_trial": 2.0}}
+    takes = [t for t in info["takes"] if t["kind"] == "response"]
+    trial = np.array([t["trial"] for t in takes], float)
+    bias = 2.0 * (trial - 1) + np.array([t["bias_shift"]["7"] for t in takes])
+    slope = np.sum((trial - trial.mean()) * (bias - bias.mean())) / np.sum((trial - trial.mean()) ** 2)
+    assert realised_bias_drift(info, 7) == pytest.approx(slope, abs=1e-9)
+    assert realised_bias_drift(info, 7) != pytest.approx(2.0, abs=1e-3)  # the shifts move it
+    # the truth positions follow the realised biases: trial 4's response is the latest
+    fp = pd.read_parquet(root / "truth" / "face.parquet")
+    D = fp[["peak_x", "peak_y", "peak_z"]].to_numpy()
+    big = np.linalg.norm(D, axis=1) > 2.0
+    rise = [np.einsum("fmk,mk->", truth_positions(root, f"du07_t{k:02d}")[12:114, big], D[big])
+            for k in (1, 2, 3, 4)]
+    assert np.argmin(rise) == int(np.argmax(bias))

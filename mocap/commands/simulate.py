@@ -95,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
         if args.noise_px is not None:
             cfg = dataclasses.replace(cfg, noise=dataclasses.replace(CaptureNoise(), noise_px=args.noise_px))
         summary = simulate(cfg, out, progress=print_progress)
+        from mocap.truth_properties import write_true_properties
+
+        write_true_properties(cfg, out)
     except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -10,8 +10,10 @@
   the same order: index of the true point (marker order of ``face.parquet``; wand or ground marker
   index), -1 for a ghost, -2 for a merged blob;
 - ``face.parquet``: per DU and marker the true peak displacement vector and response parameters;
-- ``properties.csv``: the paper's indices of the true face per DU, defined as the estimator
-  defines them (``true_properties``);
+- ``properties.csv`` (written by ``mocap simulate``, not by :func:`simulate`): the paper's
+  indices of the true face per DU, defined as the estimator defines them
+  (``mocap.truth_properties``, which lives above the analysis: the simulator imports nothing
+  from it);
 - ``truth.json``: the configuration, seed, face family (``face_family``: the family drawn when
   the configuration asked for ``random``, with its settings), hidden effect and its equation's
   parameters, the nose-bridge marker, the degraded camera, per-take metadata (with each DU's
@@ -38,7 +40,6 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
 from mocap.calib.calibration_file import write_calibration
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
@@ -48,8 +49,9 @@ from mocap.simulate.config import SimConfig
 from mocap.simulate.dus import DU_BY_ID
 from mocap.simulate.face import VirtualFace, make_face
 from mocap.simulate.families import family_stream, resolve_family
-from mocap.simulate.motion import true_positions, true_take
+from mocap.simulate.motion import true_take
 from mocap.simulate.rig import GROUND_MARKERS_MM, WAND_OFFSETS_MM, make_rig, wand_motion
+from mocap.simulate.smile import SmileTiming, nominal_branches, smile_commands
 
 RESPONSE_TAIL_S = 0.05  # one more step at 0 after the trapezoid's last row
 BATTERY_TAIL_S = 0.5
@@ -90,16 +92,6 @@ def field_pairs(face: VirtualFace, max_pairs: int) -> list[tuple[int, int]]:
     return pairs
 
 
-def nominal_responses(du_ids) -> dict[int, SigmoidPair]:
-    """The DUs' nominal full-sweep sigmoids (bias +- half the loop width): the design basis of
-    the simulated motion takes (a perfectly identified paper model)."""
-    out = {}
-    for du in du_ids:
-        s = DU_BY_ID[du]
-        out[du] = SigmoidPair(s.alpha, s.beta + s.hysteresis / 2, s.alpha, s.beta - s.hysteresis / 2)
-    return out
-
-
 def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
     """The session's takes in manifest order."""
     takes: list[PlannedTake] = []
@@ -115,11 +107,11 @@ def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
                                      purpose="the paper's trapezoid"))
     motion_dus = [d for d in cfg.motion_dus if d in face.du_ids]
     if motion_dus and cfg.motion_plans:
-        timing = PlanTiming()
-        responses = nominal_responses(motion_dus)
+        timing = SmileTiming()
+        branches = nominal_branches(motion_dus)
         label = "_".join(f"{d:02d}" for d in motion_dus)
         for p in cfg.motion_plans:
-            rows = paper_design(p, responses, timing)
+            rows = smile_commands(p, branches, timing)
             takes.append(PlannedTake(f"smile_du{label}_plan{p}", "motion", rows, plan=p,
                                      duration_s=timing.total_s,
                                      purpose="the paper's smile design through inverse sigmoids"))
@@ -207,53 +199,6 @@ def virtual_rig_and_face(cfg: SimConfig):
     face = make_face(master, cfg.n_markers, cfg.du_ids, family=family,
                      family_rng=family_stream(cfg.seed, "traits"))
     return master, rig, face
-
-
-def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: float | None = None,
-                    keep: dict | None = None) -> pd.DataFrame:
-    """The paper's indices of the true face, defined as the estimator defines them.
-
-    Per DU: the mean over the session's trials of the true responses to the paper's trapezoid
-    (each trial with its own trial-to-trial variation and the hidden effect, as the pipeline
-    averages them, but without the skin's frame-to-frame jitter and without measurement noise),
-    normalised like the pipeline's (``mocap.analysis.displacement.normalized_along``), fitted by the
-    same code (``mocap.analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
-    marker names, e.g. the ones the pipeline fitted) when given; else those whose true peak
-    displacement reaches ``min_displacement_mm`` (default: the pipeline's signal-to-noise rule at
-    the nominal noise, 20 x 0.025 mm / sqrt(trials), and at least 0.05 mm), the nose-bridge marker
-    left out as the pipeline leaves it.
-    """
-    if min_displacement_mm is None:
-        min_displacement_mm = max(0.05, 20.0 * 0.025 / np.sqrt(cfg.n_trials))
-    from mocap.analysis.displacement import normalized, normalized_along
-    from mocap.analysis.properties import du_properties
-    from mocap.reconstruct.trials import NORMALISE_S
-    from mocap.schedules import sample_commands
-
-    rows = []
-    for du in face.du_ids:
-        sched = trapezoid(du)
-        n_frames = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
-        pos = np.mean([true_positions(face, cfg.effect, sched, n_frames, cfg.fps, k,
-                                      take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
-                       for k in range(1, cfg.n_trials + 1)], axis=0)
-        d = pos - face.rest_mm[None]
-        window = max(1, int(round(NORMALISE_S * cfg.fps)))
-        disp, _ = normalized(d, window)
-        _, delta = normalized_along(d, window)
-        if keep is not None:
-            k = np.isin(np.asarray(face.marker_names), list(keep[du]))
-        else:
-            k = np.nanmax(disp, axis=0) >= min_displacement_mm
-            k[face.nose_bridge] = False
-        command = sample_commands(sched, [du], np.arange(n_frames) / cfg.fps)[:, 0]
-        p = du_properties(du, delta, command, cfg.fps, k, n_boot=0)
-        rows.append({"du": du, "name": DU_BY_ID[du].name, "alpha_fwd": p.fwd.alpha,
-                     "beta_fwd": p.fwd.beta, "alpha_bwd": p.bwd.alpha, "beta_bwd": p.bwd.beta,
-                     "sensitivity": p.sensitivity, "hysteresis": p.hysteresis,
-                     "dyssynchrony": p.dyssynchrony, "max_displacement_mm": float(np.nanmax(disp)),
-                     "n_markers": int(k.sum())})
-    return pd.DataFrame(rows)
 
 
 def simulate(cfg: SimConfig, out_dir: str | Path,
@@ -356,7 +301,6 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)
     write_parquet(face_table(face), truth / "face.parquet")
-    write_csv(true_properties(cfg, face), truth / "properties.csv")
     info = {
         "generator": f"facemocap {__version__} mocap simulate",
         "config": _jsonable(dataclasses.asdict(cfg)),
