@@ -229,7 +229,7 @@ def test_bow_deviates_perpendicular_to_the_chord_at_mid_range():
     ratio = np.linalg.norm(perp, axis=-1)[mid] / np.broadcast_to(np.linalg.norm(B, axis=1), y.shape)[mid]
     assert ratio.min() > 0.98 and ratio.max() <= 1.0 + 1e-9  # 4 * 0.25 * |B| at y = 0.5
     k = np.linalg.norm(B, axis=1) / np.linalg.norm(D, axis=1)
-    assert 0.08 - 1e-9 <= k.min() and k.max() <= 0.2 + 1e-9
+    assert 0.3 - 1e-9 <= k.min() and k.max() <= 0.6 + 1e-9
 
 
 def test_offchord_path_leaves_off_its_chord_and_ends_at_the_peak():
@@ -237,11 +237,11 @@ def test_offchord_path_leaves_off_its_chord_and_ends_at_the_peak():
     y, d, D, P1 = _take(face, 7, "offchord")
     big = np.linalg.norm(D, axis=1) > 1.0
     unit = D / np.linalg.norm(D, axis=1, keepdims=True)
-    # at a small response the path heads along P1, 25-45 degrees off the chord D
+    # at a small response the path heads along P1, 40-70 degrees off the chord D
     f = np.argmax(y.mean(axis=1) > 0.02)
     head = d[f] / np.linalg.norm(d[f], axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(np.sum(head * unit, axis=1), -1, 1)))
-    assert np.all((ang[big] > 20) & (ang[big] < 46)), ang[big]
+    assert np.all((ang[big] > 35) & (ang[big] < 71)), ang[big]
     # it ends where a straight path would: at y D
     top = int(np.argmax(y.mean(axis=1)))
     np.testing.assert_allclose(d[top][big], (y[top, :, None] * D)[big],
@@ -558,3 +558,20 @@ def test_realised_drift_is_the_drift_plus_the_recorded_shifts(tmp_path):
     rise = [np.einsum("fmk,mk->", truth_positions(root, f"du07_t{k:02d}")[12:114, big], D[big])
             for k in (1, 2, 3, 4)]
     assert np.argmin(rise) == int(np.argmax(bias))
+
+
+@pytest.mark.parametrize("family, lo, hi", [("pi", 0.999, 1.0), ("pi-bow", 0.8, 0.98),
+                                            ("preisach-offchord", 0.9, 0.99)])
+def test_curved_families_bend_paths_like_a_real_face(family, lo, hi):
+    """The first principal component's share of each moving marker's positions over the
+    trapezoid (the paper's spatial linearity; its faces: 0.8-0.9)."""
+    face = family_face(family, seed=1)
+    shares = []
+    for du in DUS:
+        P = true_take(face, HiddenEffect(), trapezoid(du), 606, FPS, 1, None).positions
+        big = np.linalg.norm(face.D_mm[face.du_index(du)], axis=1) > 0.5
+        X = P[:, big] - P[:, big].mean(axis=0)
+        lam = np.linalg.eigvalsh(np.einsum("fmi,fmj->mij", X, X))
+        shares.append(lam[:, -1] / lam.sum(axis=1))
+    median = np.median(np.concatenate(shares))
+    assert lo <= median <= hi, median

@@ -29,11 +29,11 @@ Paths (displacement of marker m by DU n at normalised response y; D the peak vec
 
     straight    d = y D
     bow         d = y D + 4 y (1 - y) B,  B = k |D| e,  e the unit skin tangent perpendicular to D,
-                k = +-U(0.08, 0.2) (sign per DU): the path bows k |D| sideways at y = 0.5
+                k = +-U(0.3, 0.6) (sign per DU): the path bows k |D| sideways at y = 0.5
     offchord    d = 3 y (1 - y)^2 P1 + 3 y^2 (1 - y) (2 D / 3) + y^3 D   (cubic Bezier), P1 =
-                |D| / 2 (cos t D/|D| + sin t e), t = +-U(25, 45) degrees (sign per DU): the path
+                |D| (cos t D/|D| + sin t e), t = +-U(40, 70) degrees (sign per DU): the path
                 leaves at angle t to its chord and ends at D, off that initial direction; its
-                sideways deviation 1.5 |D| sin t y (1 - y)^2 peaks early (y = 1/3)
+                sideways deviation 3 |D| sin t y (1 - y)^2 peaks early (y = 1/3)
 
 Trial-to-trial variation (every family but pi): each take adds to each of its DUs' biases a
 common shift s ~ N(0, 1.5^2) command units (the face is not the same from one trial to the next), on
@@ -54,8 +54,9 @@ PLAY_FRACTIONS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])  # PI play half-widths / r 
 PREISACH_ETA = np.linspace(-1.9, 1.9, 8)
 PREISACH_CENTRE_SLOPE = 0.6
 BOUC_WEN_B, BOUC_WEN_G = 0.35, 0.15  # times 1 / r (with A = 1/2: |z| <= r)
-BOW_RANGE = (0.08, 0.2)
-OFFCHORD_DEG = (25.0, 45.0)
+BOW_RANGE = (0.3, 0.6)  # sideways bow / |D|: spatial linearity 0.86-0.96 (paper 0.8-0.9)
+OFFCHORD_DEG = (40.0, 70.0)
+OFFCHORD_P1 = 1.0  # |P1| / |D|: with those angles spatial linearity 0.94-0.98
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,7 @@ def draw_traits(rng: np.random.Generator, family: FaceFamily, D: np.ndarray, nor
     elif family.path == "offchord":
         t = np.deg2rad(sign * rng.uniform(*OFFCHORD_DEG, (n, m)))[..., None]
         unit = np.where(mag > 0, D / np.where(mag > 0, mag, 1.0), 0.0)
-        vec = 0.5 * mag * (np.cos(t) * unit + np.sin(t) * side)
+        vec = OFFCHORD_P1 * mag * (np.cos(t) * unit + np.sin(t) * side)
     else:
         vec = np.zeros_like(D)
     return FamilyTraits(alpha_bwd=alpha_bwd, path_vec=vec)
