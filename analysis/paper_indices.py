@@ -225,13 +225,13 @@ def _pairs(delta_w: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 def fit_sigmoid(c: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """Least-squares (alpha, beta) of R(c) = 1 / (1 + exp(-alpha (c - beta))) to pairs (c, y),
-    solved to the optimum (a batched Levenberg-Marquardt start, then scipy's trust region)."""
+    solved to the optimum: scipy's Levenberg-Marquardt from the batched fit's start and from a
+    grid of starts over the command range, the lowest cost kept (noisy data have a flat valley
+    towards alpha -> 0 that a single start can slide into)."""
+    c = np.asarray(c, float)
+    y = np.asarray(y, float)
     if c.size < 3:
         return float("nan"), float("nan")
-    start = fit_logistic(c, y[None])
-    a0, b0 = float(start.a[0]), float(start.b[0])
-    if not (np.isfinite(a0) and np.isfinite(b0)):
-        a0, b0 = 0.05, float(np.median(c))
 
     def resid(p):
         z = np.clip(-p[0] * (c - p[1]), -500, 500)
@@ -243,9 +243,20 @@ def fit_sigmoid(c: np.ndarray, y: np.ndarray) -> tuple[float, float]:
         dr = r * (1 - r)
         return np.stack([dr * (c - p[1]), -dr * p[0]], axis=1)
 
-    sol = least_squares(resid, [a0, b0], jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                        max_nfev=2000)
-    return float(sol.x[0]), float(sol.x[1])
+    start = fit_logistic(c, y[None])
+    lo, hi = float(np.min(c)), float(np.max(c))
+    span = max(hi - lo, 1e-9)
+    starts = [(float(start.a[0]), float(start.b[0]))]
+    starts += [(k / span, lo + f * span) for k in (2.0, 8.0, 25.0) for f in (0.25, 0.5, 0.75)]
+    best = None
+    for a0, b0 in starts:
+        if not (np.isfinite(a0) and np.isfinite(b0)):
+            continue
+        sol = least_squares(resid, [a0, b0], jac=jac, method="lm", xtol=1e-15, ftol=1e-15,
+                            gtol=1e-15, max_nfev=2000)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    return float(best.x[0]), float(best.x[1])
 
 
 def paper_indices(mean: np.ndarray, trials: np.ndarray, keep: np.ndarray, timing: ScheduleTiming,

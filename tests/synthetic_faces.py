@@ -1,4 +1,4 @@
-"""Small synthetic faces for the paper's indices, written with numpy only (no mocap code): noise-free
+"""Small synthetic faces for the paper's indices, written with numpy and scipy only (no mocap code): noise-free
 trials of a static-response take, so that a test's truth is made another way than the package's.
 
 A face: M markers, each with its own path (straight, bowed, or off the chord), amplitude D_m mm,
@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 FPS = 120.0
 STEP_S = 0.05
@@ -110,12 +111,7 @@ def make_take(rng, *, family: str = "bow", n_markers: int = 30, n_trials: int = 
         y = y + creep * (1 - np.exp(-since / 0.4))[:, None] * hold[:, None]
         if lag_s.any():  # first-order lag, exact for a held input over each fine sample
             a = np.exp(-1 / (FPS * fine * np.maximum(lag_s, 1e-9)))
-            z = np.zeros(M)
-            ys = np.empty_like(y)
-            for i in range(y.shape[0]):
-                z = a * z + (1 - a) * y[i]
-                ys[i] = z
-            y = ys
+            y = np.stack([lfilter([1 - a[m]], [1, -a[m]], y[:, m]) for m in range(M)], axis=1)
         if delay.any():
             idx = np.clip(np.arange(y.shape[0])[:, None] - delay[None], 0, None)
             y = np.take_along_axis(y, idx, axis=0)
