@@ -39,7 +39,14 @@ excursion, and the markers' independent errors add to the variance over markers.
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
    deviation by the signed square root sign(v) sqrt(|v|): unbiased where the true spread is 0
    (at rest, on the plateau, where clipping at 0 would leave a positive bias of
-   0.4 sqrt(sd of the estimate)), the plain square root where the spread is well above its noise.
+   0.4 sqrt(sd of the estimate)), the plain square root where the spread is well above its noise;
+   the mean over the schedule's frames floored at 0.
+
+Its limit is the rest reference: the frames before the first command step (6 per trial in the
+paper's schedule) fix d = 0 for every later frame, so their error is a constant of each marker's
+curve that no averaging over time removes; its expected variance is subtracted, its realisation
+is not. Where the true spread is below the noise of the smallest markers' normalised curves the
+estimate is no better than 0 to 2 x the truth (docs/indices.md).
 """
 
 from __future__ import annotations
@@ -303,4 +310,6 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
         warnings.simplefilter("ignore", RuntimeWarning)
         var = np.nanvar(d, axis=1, ddof=1) - np.nanmean(nv, axis=1)
     var = smoothed(var, max(1, int(round(smooth_s * fps))))
-    return float(np.nanmean(signed_sqrt(var))), pc
+    # the mean of signed roots is unbiased; it is negative only where the spread is lost in the
+    # noise, and a standard deviation is reported as such: floored at 0
+    return max(float(np.nanmean(signed_sqrt(var))), 0.0), pc

@@ -219,3 +219,78 @@ def test_capture_noise_from_still_frames_ignores_trial_differences():
     np.testing.assert_allclose(est.cov, cov, atol=6 * 0.03**2 / np.sqrt(2000))
     clean = capture_noise_covariance(take.trials, take.series, FPS)
     assert np.max(np.abs(clean.cov)) < 1e-6  # the creep of the hold is slow: no noise
+
+
+# ---- the whole session ---------------------------------------------------------------------
+
+
+def run_trials(run_dir, session_dir, du):
+    """The run's labeled trials of one DU (K, n, M, 3) mm, its first take's command rows, and the
+    marker names, read from the run's trajectories/ and the session's command files."""
+    from mocap.session import load_session
+
+    session = load_session(session_dir)
+    takes = sorted((t for t in session.takes_of_kind("response") if int(t.du) == du),
+                   key=lambda t: (t.trial or 0, t.name))
+    trials = []
+    for t in takes:
+        df = pd.read_parquet(run_dir / "trajectories" / f"{t.name}.parquet")
+        names = list(pd.unique(df["marker"]))
+        n = int(df["frame"].max()) + 1
+        trials.append(df[["x", "y", "z"]].to_numpy().reshape(n, len(names), 3))
+    n = min(x.shape[0] for x in trials)
+    rows = session.read_commands(takes[0].name)
+    rows = rows[rows["du"] == du]
+    return np.stack([x[:n] for x in trials]), rows, names
+
+
+def test_session_paper_columns_equal_the_plain_implementation(small_sim, small_run):
+    """properties.csv of a raw 2D session against METHOD.md computed plainly on the run's own
+    labeled trajectories, command files and rejections."""
+    props = pd.read_csv(small_run.out_dir / "properties.csv").set_index("du")
+    rej = pd.read_csv(small_run.out_dir / "rejections.csv")
+    for du in props.index:
+        trials, rows, names = run_trials(small_run.out_dir, small_sim / "session", du)
+        bad = set(rej["marker"][rej["du"].isna() | (rej["du"] == du)])
+        keep = np.array([m not in bad for m in names])
+        plain = plain_paper_indices(trials, rows["time_s"].to_numpy(), rows["command"].to_numpy(),
+                                    FPS, keep)
+        for k in PAPER_COLUMNS:
+            assert props.loc[du, k] == pytest.approx(plain[k], rel=1e-6, abs=1e-9), (du, k)
+
+
+def test_session_corrected_indices_against_noise_free_truth(small_sim, small_run):
+    """The small preset (3 trials, 0.025 mm capture noise, straight paths): the corrected
+    linearity and dyssynchrony against the paper's recipe (plain) on the simulator's noise-free
+    positions of the same trials over the same markers; the literal columns on the measured
+    data for contrast."""
+    from mocap.schedules import trapezoid
+    from mocap.simulate import preset
+    from mocap.simulate.motion import true_positions
+    from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
+
+    cfg = preset("small", seed=11, battery=False)
+    _, _, face = virtual_rig_and_face(cfg)
+    props = pd.read_csv(small_run.out_dir / "properties.csv").set_index("du")
+    rej = pd.read_csv(small_run.out_dir / "rejections.csv")
+    report = {}
+    for du in props.index:
+        sched = trapezoid(du)
+        n = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
+        T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
+                                     take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
+                      for k in range(1, cfg.n_trials + 1)])
+        names = list(face.marker_names)
+        bad = set(rej["marker"][rej["du"].isna() | (rej["du"] == du)])
+        keep = np.array([m not in bad for m in names])
+        truth = plain_paper_indices(T, sched["time_s"].to_numpy(), sched["command"].to_numpy(),
+                                    cfg.fps, keep)
+        e = props.loc[du]
+        report[du] = (e["dyssynchrony"] / truth["dyssynchrony_raw"] - 1,
+                      e["dyssynchrony_raw"] / truth["dyssynchrony_raw"] - 1,
+                      e["linearity_corrected_mean"] - truth["linearity_mean"],
+                      e["linearity_mean"] - truth["linearity_mean"])
+    print(report)
+    for du, (dys, dys_raw, lin, lin_raw) in report.items():
+        assert abs(lin) < 0.02 and abs(lin) < abs(lin_raw), (du, report)
+        assert abs(dys) < 0.5 * abs(dys_raw), (du, report)
