@@ -178,8 +178,12 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     _, vec = np.linalg.eigh(second)
     u = vec[..., -1]
     p = np.einsum("fmk,mk->fm", d, u)
-    far = np.argmax(np.where(ok, np.abs(p), -1.0), axis=0)
-    u = u * np.where(p[far, np.arange(M)] < 0, -1.0, 1.0)[:, None]
+    # signed so that the hold (not the noise's largest excursion) lies ahead
+    hold = hold_frames(n, timing, fps)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ahead = np.nanmean(np.where(hold[:, None] & ok, p, np.nan), axis=0)
+    u = u * np.where(ahead < 0, -1.0, 1.0)[:, None]
     p = np.einsum("fmk,mk->fm", d, u)
     w = d - p[..., None] * u[None]
     # w(p) = a0 + a1 p + a2 p^2 per marker and axis, least squares over the schedule's frames
@@ -201,7 +205,6 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     # the maximum: the mean over the settled hold at the top command (no noise excursion, no
     # selection by the noise); where the smoothed chord clearly rises above it elsewhere (a path
     # bulging beyond its end point), the mean over the frames near that maximum instead
-    hold = hold_frames(n, timing, fps)
     plateau = np.broadcast_to(hold[:, None], (n, M)) & np.isfinite(chord)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -209,9 +212,10 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     frames = max(1, int(round(NORMALISE_S * fps)))
     cs = np.where(sched[:, None], chord, np.nan)
     k_min = np.maximum(np.nanmin(np.where(ok, n_trials, np.nan), axis=0), 1)
-    se = 4.0 * np.sqrt(np.einsum("mi,mij,mj->m", u, noise_cov, u) / k_min / frames)
+    # the smoothed maximum of pure noise over a few hundred frames reaches ~3.5 of its sd
+    se = np.sqrt(np.einsum("mi,mij,mj->m", u, noise_cov, u) / k_min / frames)
     bulge, top = plateau_mask(cs, frames)
-    beyond = ~np.isfinite(level) | (top > level + se)
+    beyond = ~np.isfinite(level) | (top > 1.01 * level + 6.0 * se)
     plateau = np.where(beyond[None], bulge, plateau)
     level = np.where(beyond, np.where(bulge, cs, 0.0).sum(axis=0) / np.maximum(bulge.sum(axis=0), 1),
                      level)
