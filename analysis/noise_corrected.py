@@ -21,7 +21,10 @@ rest, and the more the smaller a marker's motion), max_t |d + e| picks the noise
 excursion, and the markers' independent errors add to the variance over markers. The estimate:
 
 1. d_m(t) from the trial mean less the mean over the frames before the first command change (the
-   face at rest; v_m(0) from one frame would carry a whole frame's noise into every frame);
+   face at rest; v_m(0) from one frame would carry a whole frame's noise into every frame),
+   pooled, marker by marker and only where they agree within their noise, with the other
+   takes' rest frames (``pooled_rest``: the session analysis passes the other DUs' response
+   takes, the face at rest before each);
 2. the noise-free chord |d_m(t)| estimated along the marker's own path: p = d . u (u the principal
    direction, from the noise-corrected second moment) and the perpendicular part w(p) fitted as
    a quadratic in p (a bowed path); chord g = sign(p) sqrt(p^2 + |w(p) - w(0)|^2). The
@@ -42,11 +45,14 @@ excursion, and the markers' independent errors add to the variance over markers.
    0.4 sqrt(sd of the estimate)), the plain square root where the spread is well above its noise;
    the mean over the schedule's frames floored at 0.
 
-Its limit is the rest reference: the frames before the first command step (6 per trial in the
-paper's schedule) fix d = 0 for every later frame, so their error is a constant of each marker's
-curve that no averaging over time removes; its expected variance is subtracted, its realisation
-is not. Where the true spread is below the noise of the smallest markers' normalised curves the
-estimate is no better than 0 to 2 x the truth (docs/indices.md).
+Its limits: the rest reference (the frames before the first command step, 6 per trial in the
+paper's schedule, fix d = 0 for every later frame, so their error is a constant of each marker's
+curve that no averaging over time removes: its expected variance is subtracted, its realisation
+is not; pooling the other takes' rest frames shrinks it), and the square root where the true
+spread is comparable to the noise of the variance estimate (the signed root then leans low: a
+steep DU whose spread lives in a few frames, or markers moving < 0.1 mm). Where the true spread
+is below the noise of the smallest markers' normalised curves the estimate is no better than 0
+to 2 x the truth (docs/indices.md).
 """
 
 from __future__ import annotations
@@ -137,6 +143,37 @@ def hold_frames(n_frames: int, timing: ScheduleTiming, fps: float, settle_s: flo
     return (t >= start + settle - TIME_TOL_S) & (t <= stop + TIME_TOL_S)
 
 
+def rest_sums(trials: np.ndarray, timing: ScheduleTiming, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(sum (M, 3) mm, count (M,)) of a take's single-trial positions over its rest frames (before
+    the first rising step), for pooling the face's rest over takes (:func:`pooled_rest`)."""
+    T = np.asarray(trials, float)
+    rest = timing.frame_times(T.shape[1], fps) < timing.step_s - TIME_TOL_S
+    R = T[:, rest]
+    ok = np.all(np.isfinite(R), axis=-1)
+    return np.where(ok[..., None], R, 0.0).sum(axis=(0, 1)), ok.sum(axis=(0, 1)).astype(float)
+
+
+def pooled_rest(r_own: np.ndarray, n_own: np.ndarray, r_prior: np.ndarray, n_prior: np.ndarray,
+                noise_cov: np.ndarray, chi2: float = 16.27) -> tuple[np.ndarray, np.ndarray]:
+    """(rest (M, 3), samples (M,)): this take's rest pooled with a prior where they agree.
+
+    The difference's covariance is Sigma (1 / n_own + 1 / n_prior); a marker whose squared
+    Mahalanobis distance exceeds ``chi2`` (3 dof, 0.1 %) keeps its own rest."""
+    diff = r_prior - r_own
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = 1.0 / np.maximum(n_own, 1) + np.where(n_prior > 0, 1.0 / n_prior, np.inf)
+    C = noise_cov * scale[:, None, None] + 1e-12 * np.eye(3)
+    ok = np.isfinite(diff).all(axis=1) & (n_prior > 0) & (n_own > 0) & np.isfinite(scale)
+    m2 = np.full(diff.shape[0], np.inf)
+    if ok.any():
+        m2[ok] = np.einsum("mi,mi->m", diff[ok], np.linalg.solve(C[ok], diff[ok][..., None])[..., 0])
+    use = ok & (m2 < chi2)
+    w = np.where(use, n_prior, 0.0)
+    rest = np.where(use[:, None], (n_own[:, None] * r_own + w[:, None] * np.nan_to_num(r_prior))
+                    / (n_own + w)[:, None], r_own)
+    return rest, n_own + w
+
+
 @dataclass(frozen=True)
 class PathChord:
     """Noise-free chord estimate of each marker's trial-mean displacement.
@@ -144,7 +181,8 @@ class PathChord:
     chord (n_frames, M) mm signed; delta (n_frames, M) chord / peak; peak (M,) mm; slope
     (n_frames, M) d chord / d p (how noise along the path reaches the chord); along_var (M,)
     mm^2 the noise variance along the path of one trial's frame; rest (n_frames,) bool the rest
-    frames; plateau (n_frames, M) bool.
+    frames; plateau (n_frames, M) bool; rest_samples (M,) how many single-trial frames the rest
+    reference averages (this take's rest frames, plus the other takes' when pooled).
     """
 
     chord: np.ndarray
@@ -154,12 +192,20 @@ class PathChord:
     along_var: np.ndarray
     rest: np.ndarray
     plateau: np.ndarray
+    rest_samples: np.ndarray  # (M,) single-trial frames the rest reference averages
 
 
 def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, fps: float,
-               noise_cov: np.ndarray) -> PathChord:
+               noise_cov: np.ndarray, rest_prior: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> PathChord:
     """Steps 1-3 of the module docstring on trial-mean positions ``mean`` (n_frames, M, 3) mm seen
-    by ``n_trials`` (n_frames, M) trials."""
+    by ``n_trials`` (n_frames, M) trials.
+
+    ``rest_prior``: (position (M, 3) mm, samples (M,)), the face's rest measured elsewhere (the
+    mean over other takes' rest frames and how many single-trial frames it averages). Where it
+    agrees with this take's rest frames within their noise (chi-square, 3 dof, 0.1 %), the two
+    are pooled: the rest reference's error is the limit of the dyssynchrony's correction.
+    """
     v = np.asarray(mean, float)
     n, M = v.shape[:2]
     t = timing.frame_times(n, fps)
@@ -169,6 +215,10 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         r = np.nanmean(v[rest], axis=0)
+    own = np.sum(np.where(np.isfinite(v[rest][..., 0]), n_trials[rest], 0), axis=0).astype(float)
+    samples = own
+    if rest_prior is not None:
+        r, samples = pooled_rest(r, own, rest_prior[0], np.asarray(rest_prior[1], float), noise_cov)
     d = v - r[None]
     ok = np.all(np.isfinite(d), axis=-1) & sched[:, None]
     Z = np.where(ok[..., None], d, 0.0)
@@ -223,7 +273,7 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     with np.errstate(invalid="ignore", divide="ignore"):
         delta = chord / np.where(peak > 0, peak, np.nan)[None]
     along_var = np.einsum("mi,mij,mj->m", u, noise_cov, u)
-    return PathChord(chord, delta, peak, slope, along_var, rest, plateau)
+    return PathChord(chord, delta, peak, slope, along_var, rest, plateau, samples)
 
 
 def box_mean(x: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -256,13 +306,12 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
     J = pc.slope
     A = np.broadcast_to(pc.rest[:, None], s2.shape)
     H = pc.plateau
-    nA = max(float(pc.rest.sum()), 1.0)
+    nR = np.maximum(pc.rest_samples, 1.0)[None]  # single-trial frames in the rest reference
     nH = np.maximum(H.sum(axis=0), 1).astype(float)[None]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        vA = (np.nanmean(np.where(A, s2, np.nan), axis=0) / nA)[None]  # var of e_A
+        vA = pc.along_var[None] / nR  # var of e_A
         vH = (np.nanmean(np.where(H, s2, np.nan), axis=0) / nH[0])[None]
-    vA = np.where(np.isfinite(vA), vA, 0.0)
     vH = np.where(np.isfinite(vH), vH, 0.0)
     d, cnt = box_mean(np.clip(pc.delta, 0.0, 1.0), frames)
     valid = np.isfinite(pc.delta)
@@ -273,7 +322,8 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
 
     cnt = np.maximum(cnt, 1)
     own = box_sum(J * J * s2) / cnt**2
-    withA = box_sum(np.where(A, J * s2, 0.0)) / (cnt * nA)
+    # a trial-mean rest frame seen by K trials weighs K / nR in the reference: cov = var / nR
+    withA = box_sum(np.where(A, J * pc.along_var[None], 0.0)) / (cnt * nR)
     withH = box_sum(np.where(H, J * s2, 0.0)) / (cnt * nH)
     var = own + (1 - d) ** 2 * vA + d**2 * vH - 2 * (1 - d) * withA - 2 * d * withH
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -287,16 +337,18 @@ def signed_sqrt(v: np.ndarray) -> np.ndarray:
 
 def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndarray,
                            timing: ScheduleTiming, fps: float, noise_cov: np.ndarray, *,
-                           box_s: float = 0.1, smooth_s: float = 0.1) -> tuple[float, PathChord]:
+                           box_s: float = 0.1, smooth_s: float = 0.1,
+                           rest_prior: tuple[np.ndarray, np.ndarray] | None = None
+                           ) -> tuple[float, PathChord]:
     """The paper's dyssynchrony on noise-free positions, estimated (module docstring).
 
     mean (n_frames, M, 3) mm trial means; n_trials (n_frames, M); keep (M,) bool; noise_cov
-    (M, 3, 3) mm^2 per trial and frame. Each delta is averaged over a centred box of ``box_s``
-    (its white noise down by the box's length; a box far shorter than a ramp barely changes the
-    spread between markers), the variance over markers less its noise averaged over
-    ``smooth_s``. Returns (gamma, the path chords).
+    (M, 3, 3) mm^2 per trial and frame; rest_prior: see :func:`path_chord`. Each delta is
+    averaged over a centred box of ``box_s`` (its white noise down by the box's length; a box far
+    shorter than a ramp barely changes the spread between markers), the variance over markers
+    less its noise averaged over ``smooth_s``. Returns (gamma, the path chords).
     """
-    pc = path_chord(mean, n_trials, timing, fps, noise_cov)
+    pc = path_chord(mean, n_trials, timing, fps, noise_cov, rest_prior)
     n = np.shape(mean)[0]
     keep = np.asarray(keep, bool) & np.any(np.isfinite(pc.delta), axis=0)
     sched = timing.schedule(n, fps)
@@ -306,7 +358,7 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     inside[sched] = True
     frames = max(1, int(round(box_s * fps)))
     pc_in = PathChord(pc.chord, np.where(inside[:, None], pc.delta, np.nan), pc.peak, pc.slope,
-                      pc.along_var, pc.rest, pc.plateau)
+                      pc.along_var, pc.rest, pc.plateau, pc.rest_samples)
     d, _ = box_mean(pc_in.delta, frames)
     nv = delta_noise_variance(pc_in, n_trials, frames)
     d, nv = d[sched][:, keep], nv[sched][:, keep]

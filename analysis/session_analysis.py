@@ -20,6 +20,7 @@ from mocap.analysis.noise_corrected import (
     capture_noise_covariance,
     corrected_dyssynchrony,
     corrected_linearity,
+    rest_sums,
 )
 from mocap.analysis.paper_indices import paper_indices, timing_from_series
 from mocap.analysis.plans import PLAN_NAMES
@@ -126,16 +127,25 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
-    for avg in averages:
+    timings = [a.timing if a.timing is not None else timing_from_series(a.command, a.fps)
+               for a in averages]
+    # the face at rest before every response take: each DU's rest reference is pooled with the
+    # other DUs' rest frames where they agree (``mocap.analysis.noise_corrected.pooled_rest``)
+    sums = [rest_sums(a.trials, tm, a.fps) for a, tm in zip(averages, timings)]
+    total = (sum(x[0] for x in sums), sum(x[1] for x in sums)) if sums else None
+    for i, avg in enumerate(averages):
         keep = kept_markers(rejections, names, avg.du)
-        timing = avg.timing if avg.timing is not None else timing_from_series(avg.command, avg.fps)
+        timing = timings[i]
+        others_n = total[1] - sums[i][1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            prior = ((total[0] - sums[i][0]) / others_n[:, None], others_n)
         paper = paper_indices(avg.mean, avg.trials, keep, timing, avg.fps, n_boot=n_boot)
         fallback = noise_cov_mm2
         if fallback is None and noise_mm is not None:
             fallback = (np.asarray(noise_mm, float) ** 2)[:, None, None] * np.eye(3)
         noise = capture_noise_covariance(avg.trials, avg.command, avg.fps, fallback=fallback)
         dys_c, _ = corrected_dyssynchrony(avg.mean, avg.n_trials, paper.keep, timing, avg.fps,
-                                          noise.cov)
+                                          noise.cov, rest_prior=prior)
         lin_c = corrected_linearity(avg.trials, timing, avg.fps, noise.cov)
         # the along-path estimator (today's, kept in its own columns)
         pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])

@@ -294,3 +294,23 @@ def test_session_corrected_indices_against_noise_free_truth(small_sim, small_run
     for du, (dys, dys_raw, lin, lin_raw) in report.items():
         assert abs(lin) < 0.02 and abs(lin) < abs(lin_raw), (du, report)
         assert abs(dys) < 0.5 * abs(dys_raw), (du, report)
+
+
+def test_pooled_rest_reference_only_where_the_rests_agree():
+    """The rest reference is pooled with the other takes' rest frames marker by marker, only where
+    the two agree within their noise (a face that comes back elsewhere keeps its own rest)."""
+    from mocap.analysis.noise_corrected import pooled_rest
+
+    rng = np.random.default_rng(2)
+    M, sd = 200, 0.03
+    truth = rng.uniform(-30, 30, (M, 3))
+    cov = np.broadcast_to(sd**2 * np.eye(3), (M, 3, 3))
+    own = truth + rng.normal(0, sd / np.sqrt(18), (M, 3))  # 6 frames x 3 trials
+    prior = truth + rng.normal(0, sd / np.sqrt(900), (M, 3))
+    prior[:20] += 0.1  # these markers rest elsewhere in the other takes (8 sigma of the difference)
+    rest, n = pooled_rest(own, np.full(M, 18.0), prior, np.full(M, 900.0), cov)
+    assert np.all(n[:20] == 18) and np.mean(n[20:] == 918) > 0.99
+    np.testing.assert_allclose(rest[:20], own[:20])
+    err_pooled = np.abs(rest[20:] - truth[20:]).mean()
+    err_own = np.abs(own[20:] - truth[20:]).mean()
+    assert err_pooled < 0.25 * err_own
