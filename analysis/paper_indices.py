@@ -144,10 +144,10 @@ class PaperIndices:
     """One DU's indices by the paper's recipe (module docstring).
 
     alpha_* 1/command unit, beta_* command units; dyssynchrony_raw, linearity 1. ``delta``
-    (n_frames, n_markers): the normalised displacement over the whole take (NaN outside the
-    schedule is not applied: frames after t_end + one step keep their values); ``linearity``
+    (n_frames, n_markers): |d| / max |d| at every frame of the take (the maximum over the
+    schedule's frames; frames recorded after the schedule keep their values); ``linearity``
     (n_markers,); ``keep`` (n_markers,) the markers used; ``ci``: name -> (2.5 %, 97.5 %) from a
-    bootstrap over the kept markers.
+    bootstrap over the kept markers (the fits redone with the markers resampled).
     """
 
     alpha_fwd: float
