@@ -369,3 +369,25 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     # the mean of signed roots is unbiased; it is negative only where the spread is lost in the
     # noise, and a standard deviation is reported as such: floored at 0
     return max(float(np.nanmean(signed_sqrt(var))), 0.0), pc
+
+
+def corrected_fits(pc: PathChord, keep: np.ndarray, timing: ScheduleTiming,
+                   fps: float) -> dict:
+    """The paper's two sigmoid fits (its windows, abscissa and pooling) on the path-chord delta
+    instead of |d| / max |d|: an estimate of the fits on noise-free positions (the chord's noise
+    has zero mean at rest and on small motions, and its maximum no noise excursion, so the
+    pooled least squares is not pulled flat). Returns alpha_fwd, beta_fwd, alpha_bwd, beta_bwd,
+    sensitivity, hysteresis (1/command unit, command units)."""
+    from mocap.analysis.paper_indices import fit_sigmoid
+
+    n = pc.delta.shape[0]
+    idx = np.flatnonzero(np.asarray(keep, bool) & np.any(np.isfinite(pc.delta), axis=0))
+    out = {}
+    for name, (frames, c) in (("fwd", timing.forward(n, fps)), ("bwd", timing.backward(n, fps))):
+        y = pc.delta[frames][:, idx]
+        x = np.broadcast_to(c[:, None], y.shape)
+        ok = np.isfinite(y)
+        out[f"alpha_{name}"], out[f"beta_{name}"] = fit_sigmoid(x[ok], y[ok])
+    out["sensitivity"] = 0.5 * (out["alpha_fwd"] + out["alpha_bwd"])
+    out["hysteresis"] = out["beta_fwd"] - out["beta_bwd"]
+    return out

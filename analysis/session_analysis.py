@@ -19,6 +19,7 @@ from mocap.analysis.linearity import spatial_linearity, step_noise_covariance
 from mocap.analysis.noise_corrected import (
     capture_noise_covariance,
     corrected_dyssynchrony,
+    corrected_fits,
     corrected_linearity,
     rest_sums,
 )
@@ -113,8 +114,10 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
     rejections keep; ``dyssynchrony`` and ``linearity_corrected_mean`` estimate what that recipe
     gives on noise-free positions of the same trials, over the same markers
     (``mocap.analysis.noise_corrected``; the capture noise measured on each take's still frames).
-    Columns ending ``_along_path``, ``dyssynchrony_step_means`` and ``linearity_step_noise_mean``
-    are the along-path estimator (docs/indices.md says when to prefer which).
+    Columns ending ``_corrected`` are the paper's fits on the same noise-corrected chords
+    (``corrected_fits``). Columns ending ``_along_path``, ``dyssynchrony_step_means`` and
+    ``linearity_step_noise_mean`` are the along-path estimator (docs/indices.md says when to
+    prefer which).
 
     noise_mm : optional (M,) per-marker measurement noise sd (mm, per axis; the rest take's
         noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the
@@ -144,8 +147,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         if fallback is None and noise_mm is not None:
             fallback = (np.asarray(noise_mm, float) ** 2)[:, None, None] * np.eye(3)
         noise = capture_noise_covariance(avg.trials, avg.command, avg.fps, fallback=fallback)
-        dys_c, _ = corrected_dyssynchrony(avg.mean, avg.n_trials, paper.keep, timing, avg.fps,
-                                          noise.cov, rest_prior=prior)
+        dys_c, chord = corrected_dyssynchrony(avg.mean, avg.n_trials, paper.keep, timing,
+                                              avg.fps, noise.cov, rest_prior=prior)
+        fits_c = corrected_fits(chord, paper.keep, timing, avg.fps)
         lin_c = corrected_linearity(avg.trials, timing, avg.fps, noise.cov)
         # the along-path estimator (today's, kept in its own columns)
         pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])
@@ -191,6 +195,8 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         for k, (lo, hi) in paper.ci.items():
             row[f"{k}_ci_lo"] = lo
             row[f"{k}_ci_hi"] = hi
+        for k, v in fits_c.items():
+            row[f"{k}_corrected"] = v
         along = {"alpha_fwd": props.fwd.alpha, "beta_fwd": props.fwd.beta,
                  "alpha_bwd": props.bwd.alpha, "beta_bwd": props.bwd.beta,
                  "sensitivity": props.sensitivity, "hysteresis": props.hysteresis}
