@@ -295,9 +295,11 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
 
     delta_hat = delta + (e_t - (1 - delta) e_A - delta e_H) / peak with e_t the frame's error
     along the path (variance along_var / n_trials, times the chord's slope squared), e_A the
-    rest reference's (the mean over the rest frames A) and e_H the plateau mean's (frames H).
-    Over a box F of |F| frames the first term's variance is sum_F J^2 s^2 / |F|^2, and a box
-    overlapping A (or H) shares |F n A| / (|F| |A|) of e_A's terms (the cross terms below).
+    rest reference's (``rest_samples`` single-trial frames: the rest frames A, and the other
+    takes' when pooled; variance along_var / rest_samples) and e_H the maximum's (the mean over
+    the frames H, ``plateau``). Over a box F of |F| frames the first term's variance is
+    sum_F J^2 s^2 / |F|^2, and a box overlapping A (or H) shares its frames' errors with e_A
+    (or e_H): the cross terms below.
     """
     from scipy.ndimage import convolve1d
 
