@@ -71,18 +71,20 @@ def linearity_bars(path, dus, means, stds) -> Path:
     return _save(fig, path)
 
 
-def response_curves(path, du, name, fps, delta, keep, ramps, props) -> Path:
-    """Measured forward/backward delta vs command (mean and spread over the fitted markers),
-    with the fitted sigmoids."""
+def response_curves(path, du, name, paper, fps: float) -> Path:
+    """The paper's response curves: delta = |d| / max |d| against the paper's abscissa c (forward
+    c = 255 t / T_s, backward c = 255 (t_end - t) / T_s), mean and spread over the kept markers,
+    with the sigmoids fitted by the paper's recipe (``mocap.analysis.paper_indices``)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4.0))
-    cgrid = np.linspace(0, 255, 256)
-    for ramp, colour, label, par in ((ramps[0], "tab:blue", "forward", props.fwd),
-                                     (ramps[1], "tab:red", "backward", props.bwd)):
-        sl = slice(ramp.start, ramp.stop)
-        t = np.arange(ramp.start, ramp.stop) / fps
-        c = ramp.p0 + ramp.p1 * t
-        d = delta[sl][:, keep]
+    cgrid = np.linspace(0, paper.timing.top, 256)
+    n = paper.delta.shape[0]
+    for branch, colour, label, a, b in (("forward", "tab:blue", "forward", paper.alpha_fwd,
+                                         paper.beta_fwd),
+                                        ("backward", "tab:red", "backward", paper.alpha_bwd,
+                                         paper.beta_bwd)):
+        frames, c = getattr(paper.timing, branch)(n, fps)
+        d = paper.delta[frames][:, paper.keep]
         with np.errstate(invalid="ignore"):
             import warnings
 
@@ -91,14 +93,14 @@ def response_curves(path, du, name, fps, delta, keep, ramps, props) -> Path:
                 m, s = np.nanmean(d, axis=1), np.nanstd(d, axis=1)
         ax.fill_between(c, m - s, m + s, color=colour, alpha=0.2)
         ax.plot(c, m, color=colour, lw=1, alpha=0.7, label=f"measured {label} (mean +- sd)")
-        ax.plot(cgrid, sigmoid(cgrid, par.alpha, par.beta), color=colour, lw=2.2,
-                label=f"R_{label[:3]}: alpha {par.alpha:.3f}, beta {par.beta:.0f}")
-    ax.set_xlim(0, 255)
+        ax.plot(cgrid, sigmoid(cgrid, a, b), color=colour, lw=2.2,
+                label=f"R_{label[:3]}: alpha {a:.3f}, beta {b:.0f}")
+    ax.set_xlim(0, paper.timing.top)
     ax.set_ylim(-0.05, 1.1)
-    ax.set_xlabel("command (0..255)")
-    ax.set_ylabel("normalised displacement delta (1)")
-    ax.set_title(f"DU {du} ({name}): hysteresis {props.hysteresis:.0f}, dyssynchrony "
-                 f"{props.dyssynchrony:.3f}")
+    ax.set_xlabel("command c = 255 t / T_s (paper's conversion)")
+    ax.set_ylabel("normalised displacement |d| / max |d| (1)")
+    ax.set_title(f"DU {du} ({name}), the paper's method: hysteresis {paper.hysteresis:.0f}, "
+                 f"dyssynchrony (raw) {paper.dyssynchrony_raw:.3f}", fontsize=9)
     ax.legend(fontsize=7, loc="upper left")
     return _save(fig, path)
 
@@ -110,10 +112,10 @@ def property_chart(path, dus, alphas, hysteresis, dyssynchrony, feedback) -> Pat
                     edgecolors=["k" if f else "none" for f in feedback], linewidths=1.5)
     for d, a, h in zip(dus, alphas, hysteresis):
         ax.annotate(str(d), (a, h), textcoords="offset points", xytext=(5, 4), fontsize=9)
-    fig.colorbar(sc, ax=ax, label="dyssynchrony gamma (1)")
-    ax.set_xlabel("sensitivity alpha (1/command unit)")
-    ax.set_ylabel("hysteresis beta_fwd - beta_bwd (command units)")
-    ax.set_title("Property chart (black edge: position feedback; smaller is better)")
+    fig.colorbar(sc, ax=ax, label="dyssynchrony gamma, noise-corrected estimate (1)")
+    ax.set_xlabel("sensitivity alpha, the paper's method (1/command unit)")
+    ax.set_ylabel("hysteresis beta_fwd - beta_bwd, the paper's method (command units)")
+    ax.set_title("Property chart (black edge: position feedback; smaller is better)", fontsize=10)
     ax.grid(alpha=0.3)
     return _save(fig, path)
 

@@ -6,6 +6,7 @@ pipeline writes them (properties.csv, linearity.csv, marker_properties.csv, figu
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,6 +16,14 @@ from mocap.analysis.design import PlanTiming
 from mocap.analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
 from mocap.analysis.displacement import plateau_mask
 from mocap.analysis.linearity import spatial_linearity, step_noise_covariance
+from mocap.analysis.noise_corrected import (
+    capture_noise_covariance,
+    corrected_dyssynchrony,
+    corrected_fits,
+    corrected_linearity,
+    rest_sums,
+)
+from mocap.analysis.paper_indices import paper_indices, timing_from_series
 from mocap.analysis.plans import PLAN_NAMES
 from mocap.analysis.properties import du_properties
 
@@ -23,7 +32,13 @@ MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its tr
 
 PROPERTY_COLUMNS = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity",
                     "hysteresis", "dyssynchrony", "linearity_mean", "linearity_std",
-                    "max_displacement_mm", "n_markers"]
+                    "max_displacement_mm", "n_markers", "dyssynchrony_raw",
+                    "linearity_corrected_mean"]
+# today's other estimators, in columns named for what they are (docs/indices.md): the fits on
+# the displacement along each marker's principal direction normalised by its plateau, over the
+# ramps' command lines one step beyond each ramp, markers with a peak 20 x their noise; the
+# dyssynchrony on command-step means with their noise removed
+ALONG_PATH = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis")
 
 
 @dataclass
@@ -31,7 +46,8 @@ class SessionAnalysis:
     properties: pd.DataFrame
     linearity: pd.DataFrame
     marker_properties: pd.DataFrame
-    du: dict = field(default_factory=dict)  # du -> DUProperties
+    du: dict = field(default_factory=dict)  # du -> DUProperties (along-path estimator)
+    paper: dict = field(default_factory=dict)  # du -> PaperIndices (the paper's recipe)
     keep: dict = field(default_factory=dict)  # du -> (M,) bool, not rejected
     fitted: dict = field(default_factory=dict)  # du -> (M,) bool, in the response fits
     fields_mm: dict = field(default_factory=dict)  # du -> (M, 3) displacement at full command
@@ -93,22 +109,51 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                       noise_cov_mm2: np.ndarray | None = None) -> SessionAnalysis:
     """Linearity, fitted responses and indices for every DU's averaged response.
 
+    The paper's columns (``alpha_fwd`` ... ``linearity_mean``, ``dyssynchrony_raw``) are the
+    paper's recipe on the measured data (``mocap.analysis.paper_indices``) over the markers the
+    rejections keep; ``dyssynchrony`` and ``linearity_corrected_mean`` estimate what that recipe
+    gives on noise-free positions of the same trials, over the same markers
+    (``mocap.analysis.noise_corrected``; the capture noise measured on each take's still frames).
+    Columns ending ``_corrected`` are the paper's fits on the same noise-corrected chords
+    (``corrected_fits``). Columns ending ``_along_path``, ``dyssynchrony_step_means`` and
+    ``linearity_step_noise_mean`` are the along-path estimator (docs/indices.md says when to
+    prefer which).
+
     noise_mm : optional (M,) per-marker measurement noise sd (mm, per axis; the rest take's
-        noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the response
-        fits and indices use only markers whose peak displacement is at least ``MIN_SNR`` times
-        that noise (below it a normalised curve is mostly noise: its "peak" is a noise maximum),
-        and the dyssynchrony is corrected for the remaining noise (``mocap.analysis.properties``).
-    noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the noise-corrected
-        linearity's fallback for markers with too few samples within the response takes' steps
-        (its noise covariance is measured there, ``take_noise_covariance``).
+        noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the
+        along-path fits use only markers whose peak displacement is at least ``MIN_SNR`` times
+        that noise, and its step-mean dyssynchrony is corrected for the remaining noise
+        (``mocap.analysis.properties``); it is also the capture noise's fallback for markers
+        with too few still frames.
+    noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the fallback
+        preferred over ``noise_mm``.
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
-    for avg in averages:
+    timings = [a.timing if a.timing is not None else timing_from_series(a.command, a.fps)
+               for a in averages]
+    # the face at rest before every response take: each DU's rest reference is pooled with the
+    # other DUs' rest frames where they agree (``mocap.analysis.noise_corrected.pooled_rest``)
+    sums = [rest_sums(a.trials, tm, a.fps) for a, tm in zip(averages, timings)]
+    total = (sum(x[0] for x in sums), sum(x[1] for x in sums)) if sums else None
+    for i, avg in enumerate(averages):
         keep = kept_markers(rejections, names, avg.du)
+        timing = timings[i]
+        others_n = total[1] - sums[i][1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            prior = ((total[0] - sums[i][0]) / others_n[:, None], others_n)
+        paper = paper_indices(avg.mean, avg.trials, keep, timing, avg.fps, n_boot=n_boot)
+        fallback = noise_cov_mm2
+        if fallback is None and noise_mm is not None:
+            fallback = (np.asarray(noise_mm, float) ** 2)[:, None, None] * np.eye(3)
+        noise = capture_noise_covariance(avg.trials, avg.command, avg.fps, fallback=fallback)
+        dys_c, chord = corrected_dyssynchrony(avg.mean, avg.n_trials, paper.keep, timing,
+                                              avg.fps, noise.cov, rest_prior=prior)
+        fits_c = corrected_fits(chord, paper.keep, timing, avg.fps)
+        lin_c = corrected_linearity(avg.trials, timing, avg.fps, noise.cov)
+        # the along-path estimator (today's, kept in its own columns)
         pooled = avg.trials.reshape(-1, *avg.trials.shape[2:])
-        lin = spatial_linearity(pooled)
-        lin_c = spatial_linearity(pooled, take_noise_covariance(avg, noise_mm, noise_cov_mm2))
+        lin_step = spatial_linearity(pooled, take_noise_covariance(avg, noise_mm, noise_cov_mm2))
         delta = avg.delta_along if avg.delta_along is not None else avg.delta
         noise_var, plateau = None, None
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
@@ -123,31 +168,45 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm,
                                       -np.inf), axis=0)
             fit_keep = keep & (peak >= MIN_SNR * se)
-        props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=n_boot,
+        props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=0,
                               noise_var=noise_var, plateau=plateau)
         hold = avg.command == avg.command.max()
         field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
         result.du[avg.du] = props
+        result.paper[avg.du] = paper
         result.keep[avg.du] = keep
         result.fitted[avg.du] = fit_keep
         result.fields_mm[avg.du] = field_mm
+        kept = paper.keep
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            lin_c_mean = float(np.nanmean(lin_c[kept])) if kept.any() else np.nan
         row = {"du": avg.du, "name": du_names.get(avg.du, f"DU{avg.du}"),
-               "alpha_fwd": props.fwd.alpha, "beta_fwd": props.fwd.beta,
-               "alpha_bwd": props.bwd.alpha, "beta_bwd": props.bwd.beta,
-               "sensitivity": props.sensitivity, "hysteresis": props.hysteresis,
-               "dyssynchrony": props.dyssynchrony,
-               "linearity_mean": float(np.nanmean(lin[keep])), "linearity_std": float(np.nanstd(lin[keep])),
+               "alpha_fwd": paper.alpha_fwd, "beta_fwd": paper.beta_fwd,
+               "alpha_bwd": paper.alpha_bwd, "beta_bwd": paper.beta_bwd,
+               "sensitivity": paper.sensitivity, "hysteresis": paper.hysteresis,
+               "dyssynchrony": dys_c,
+               "linearity_mean": paper.linearity_mean, "linearity_std": paper.linearity_std,
                "max_displacement_mm": float(np.nanmax(peak[keep])) if keep.any() else np.nan,
-               "n_markers": int(props.n_markers),
-               # over the markers in the fits: noise correction is only as good as the noise
-               # estimate, so it is reported where the motion is well above the noise
-               "linearity_corrected_mean": float(np.nanmean(lin_c[fit_keep])),
-               "dyssynchrony_raw": props.dyssynchrony_raw}
-        for k, (lo, hi) in props.ci.items():
+               "n_markers": int(kept.sum()),
+               "dyssynchrony_raw": paper.dyssynchrony_raw,
+               "linearity_corrected_mean": lin_c_mean}
+        for k, (lo, hi) in paper.ci.items():
             row[f"{k}_ci_lo"] = lo
             row[f"{k}_ci_hi"] = hi
+        for k, v in fits_c.items():
+            row[f"{k}_corrected"] = v
+        along = {"alpha_fwd": props.fwd.alpha, "beta_fwd": props.fwd.beta,
+                 "alpha_bwd": props.bwd.alpha, "beta_bwd": props.bwd.beta,
+                 "sensitivity": props.sensitivity, "hysteresis": props.hysteresis}
+        for k in ALONG_PATH:
+            row[f"{k}_along_path"] = along[k]
+        row["n_markers_along_path"] = int(props.n_markers)
+        row["dyssynchrony_step_means"] = props.dyssynchrony
+        row["linearity_step_noise_mean"] = float(np.nanmean(lin_step[fit_keep])) if fit_keep.any() else np.nan
         prop_rows.append(row)
+        lin = paper.linearity
         for m, name in enumerate(names):
             lin_rows.append({"du": avg.du, "marker": name, "linearity": lin[m],
                              "linearity_corrected": lin_c[m],

@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from mocap import __version__
+from mocap.analysis.paper_indices import schedule_timing
 from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.reconstruct.correspondence import (
     ReconstructionSettings,
@@ -262,9 +263,12 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
     for du, takes in sorted(by_du.items()):
         takes = sorted(takes, key=lambda t: (t.trial or 0, t.name))
         X = [recon.dense[t.name].X for t in takes]
-        cmds = [command_matrix(session.read_commands(t.name), session.fps, x.shape[0], [du])[:, 0]
-                for t, x in zip(takes, X)]
-        out.append(average_trials(du, X, cmds, session.fps, [t.name for t in takes]))
+        rows = [session.read_commands(t.name) for t in takes]
+        cmds = [command_matrix(r, session.fps, x.shape[0], [du])[:, 0] for r, x in zip(rows, X)]
+        first = rows[0][rows[0]["du"] == du]
+        timing = schedule_timing(first["time_s"].to_numpy(float), first["command"].to_numpy(float),
+                                 source=f"take {takes[0].name}: its command file")
+        out.append(average_trials(du, X, cmds, session.fps, [t.name for t in takes], timing))
     return out
 
 
@@ -293,14 +297,11 @@ def run_analyses(session: Session, recon: Reconstruction, averages, rejections, 
     fig = out / "figures"
     rest = recon.markers.rest_mm
     for avg in averages:
-        p = res.du[avg.du]
         figures.displacement_field(fig / f"du{avg.du:02d}_displacement_field.png", avg.du,
                                    du_names.get(avg.du, ""), rest, res.fields_mm[avg.du],
                                    res.keep[avg.du])
         figures.response_curves(fig / f"du{avg.du:02d}_response.png", avg.du,
-                                du_names.get(avg.du, ""), avg.fps,
-                                avg.delta_along if avg.delta_along is not None else avg.delta,
-                                res.fitted[avg.du], p.ramps, p)
+                                du_names.get(avg.du, ""), res.paper[avg.du], avg.fps)
     props = res.properties
     figures.linearity_bars(fig / "linearity.png", props["du"], props["linearity_mean"],
                            props["linearity_std"])

@@ -19,8 +19,9 @@ capture's own timelines ``frame`` (sequence) and ``time`` (seconds; each take st
 - ``world/takes/<take>/markers``: labeled 3D markers over time; ``.../paths``: each marker's
   trajectory as a line strip;
 - ``plots/commands/<take>``: the DUs' commands as scalar series;
-- ``plots/du<NN>/response``: measured mean normalised displacement and the fitted forward and
-  backward sigmoids (along the ramps' command lines);
+- ``plots/du<NN>/response``: measured mean normalised displacement along each marker's
+  principal direction and the along-path estimator's forward and backward sigmoids (along the
+  ramps' command lines; properties.csv's ``*_along_path`` columns);
 - ``charts/property_chart``: sensitivity (x 1000) against hysteresis, coloured by dyssynchrony;
 - ``annotations/rejections`` and ``annotations/audit``: markdown tables;
 - a default blueprint: the 3D view, a camera view, the plots and the property chart.
@@ -234,7 +235,8 @@ def _log_annotations(rec, rr, result, names):
                 static=True)
         rec.log("charts/about", rr.TextDocument(
             "Property chart: x = sensitivity alpha x 1000 (1/command unit), y = hysteresis "
-            "(command units), colour = dyssynchrony (blue low, red high).",
+            "(command units), both by the paper's method; colour = dyssynchrony, the "
+            "noise-corrected estimate (blue low, red high).",
             media_type=rr.MediaType.MARKDOWN), static=True)
     rej = result.rejections
     if rej is not None and len(rej):

@@ -117,8 +117,13 @@ def _responses(source: Path, dus):
     if missing:
         raise ValueError(f"{props_path}: no identified response for DUs {missing} "
                          f"(has {sorted(props.index)})")
-    return {d: SigmoidPair(props.loc[d, "alpha_fwd"], props.loc[d, "beta_fwd"],
-                           props.loc[d, "alpha_bwd"], props.loc[d, "beta_bwd"]) for d in dus}
+    # the along-path estimator's sigmoids when the output has them: the face's response in
+    # command units with little noise bias (docs/indices.md); the paper's literal columns
+    # otherwise (outputs written before they existed)
+    suffix = "_along_path" if "alpha_fwd_along_path" in props.columns else ""
+    return {d: SigmoidPair(*(props.loc[d, f"{k}{suffix}"]
+                             for k in ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd")))
+            for d in dus}
 
 
 def _paper_rows(plan, plan_file, responses, timing, dus):

@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from mocap.analysis.displacement import normalized, normalized_along, peak_length, principal_direction
+from mocap.analysis.paper_indices import ScheduleTiming, timing_from_series
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
 
@@ -74,6 +75,7 @@ class TrialAverage:
     delta_along: np.ndarray | None = None  # (n_frames, M) along the principal direction
     along_mm: np.ndarray | None = None  # (n_frames, M) displacement along it, mm
     direction: np.ndarray | None = None  # (M, 3) each marker's unit principal direction
+    timing: ScheduleTiming | None = None  # the paper's time axis, from the first take's command rows
 
 
 def _first_change(command: np.ndarray) -> int:
@@ -82,8 +84,13 @@ def _first_change(command: np.ndarray) -> int:
 
 
 def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.ndarray],
-                   fps: float, takes: list[str]) -> TrialAverage:
-    """Align and average a DU's trials (see the module docstring)."""
+                   fps: float, takes: list[str], timing: ScheduleTiming | None = None) -> TrialAverage:
+    """Align and average a DU's trials (see the module docstring).
+
+    ``timing``: the paper's time axis of the first take (the one the others are aligned to),
+    read from its command rows (``mocap.analysis.paper_indices.schedule_timing``); without it,
+    read from the first take's per-frame command series (the step time then known to a frame).
+    """
     starts = [_first_change(c) for c in commands]
     ref = starts[0]
     shifted_X, shifted_c = [], []
@@ -124,8 +131,10 @@ def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.nd
     disp, delta = normalized(mean - rest[None], window)
     direction = principal_direction(mean - rest[None])
     along, delta_along = normalized_along(mean - rest[None], window, direction)
+    if timing is None:
+        timing = timing_from_series(commands[0], fps)
     return TrialAverage(du, fps, command, mean, spread, n_tr, rest, disp, delta, T,
-                        tuple(takes), tuple(warnings), delta_along, along, direction)
+                        tuple(takes), tuple(warnings), delta_along, along, direction, timing)
 
 
 def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:
