@@ -23,6 +23,7 @@ import pandas as pd
 
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
+from mocap.paths import check_output_path
 from mocap.reconstruct.correspondence import (
     ReconstructionSettings,
     blob_camera_index,
@@ -338,6 +339,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     timings: dict[str, float] = {}
     session = load_session(session_dir)
     out = Path(out_dir)
+    check_output_path(out, sessions=[session.root])
     out.mkdir(parents=True, exist_ok=True)
     say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
 

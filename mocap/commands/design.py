@@ -136,6 +136,7 @@ def _paper_rows(plan, plan_file, responses, timing, dus):
 def run(args: argparse.Namespace) -> int:
     from mocap.analysis.plans import PLAN_NAMES
     from mocap.atomic import write_csv
+    from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
     plan = args.plan.upper()
@@ -166,6 +167,9 @@ def run(args: argparse.Namespace) -> int:
         return 1
     timing = _timing(args)
     try:
+        sources = [args.source, *([args.measured] if args.measured else [])]
+        check_output_path(args.out, sessions=[s for s in map(session_dir_of, sources) if s],
+                          inputs=[f for f in (plan_file, args.reference) if f is not None])
         if args.method == "paper":
             if args.refine or args.check:
                 print("error: --refine and --check need --method model", file=sys.stderr)

@@ -30,7 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mocap.interop.marker_data import ImportError_
     from mocap.interop.session_io import import_files
+    from mocap.paths import OutputPathError, check_output_path
 
+    try:
+        check_output_path(args.out, inputs=[*args.files, *([args.commands] if args.commands else [])])
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     try:
         report = import_files(args.files, args.out, commands=args.commands, fps=args.fps)
     except ImportError_ as e:

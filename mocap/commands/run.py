@@ -32,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.calib.wand_calibration import CalibrationError
+    from mocap.paths import check_output_path
     from mocap.pipeline import run_session
     from mocap.session import SessionError
 
@@ -49,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
         settings = dataclasses.replace(settings, jobs=max(1, args.jobs))
     try:
+        check_output_path(args.out, sessions=[args.session_dir])
         result = run_session(args.session_dir, args.out, progress=say, settings=settings)
     except (SessionError, CalibrationError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.atomic import write_csv, write_text
+    from mocap.paths import OutputPathError, check_output_path
     from mocap.schedules import identification_battery, trapezoid
 
     try:
@@ -38,6 +39,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"error: --dus 1,4,7 and --pairs 1-7,4-7 expected, got {args.dus!r} {args.pairs!r}",
               file=sys.stderr)
+        return 1
+    try:
+        check_output_path(args.out)
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 1
     lines = ["# Identification battery", "", "| file | DUs | exposes | duration (s) |", "|---|---|---|---|"]
     total = 0.0
