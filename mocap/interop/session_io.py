@@ -11,6 +11,7 @@ missing. Nothing is overwritten: the output folder must not hold a session yet.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -21,15 +22,45 @@ import pandas as pd
 
 from mocap.atomic import write_csv, write_text
 from mocap.interop.c3d_file import read_c3d, write_c3d
-from mocap.interop.marker_data import ImportError_, MarkerData
+from mocap.interop.marker_data import ImportError_, MarkerData, unique_names
 from mocap.interop.vendor_text import sniff
 
 DU_CHANNEL = re.compile(r"^\s*du\s*0*(\d+)\s*$", re.IGNORECASE)
 
 
 def read_any(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
+    """Read a vendor file by its type (:func:`sniff`); ImportError_ naming the file and the place
+    when it is malformed, or when it holds no frame or no marker."""
     reader = sniff(path)
-    return reader(path) if reader is read_c3d else reader(path, fps=fps)
+    data = reader(path) if reader is read_c3d else reader(path, fps=fps)
+    if data.X.shape[0] == 0 or data.X.shape[1] == 0:
+        raise ImportError_(f"{path}: {data.X.shape[0]} frames of {data.X.shape[1]} markers: "
+                           "nothing to import")
+    return data
+
+
+_CSV_UNSAFE = re.compile(r'[,"\r\n\x00-\x1f\x7f]')
+
+
+def _csv_safe(names: list[str], where: str, notes: list[str]) -> list[str]:
+    """Marker names a take file can hold (no comma, quote or control character), noted."""
+    out = []
+    for n in names:
+        safe = _CSV_UNSAFE.sub("_", n).strip() or "unnamed"
+        if safe != n:
+            notes.append(f"{where}: marker name {n!r} written as {safe!r} (a take file cannot hold "
+                         "commas, quotes or control characters in a name)")
+        out.append(safe)
+    return out
+
+
+def _toml_string(text: str) -> str:
+    """``text`` as a TOML basic string (quotes, backslashes and control characters escaped)."""
+    def escape(m: re.Match) -> str:
+        c = m.group(0)
+        return {'"': '\\"', "\\": "\\\\"}.get(c, f"\\u{ord(c):04X}")
+
+    return '"' + re.sub(r'["\\\x00-\x1f\x7f]', escape, text) + '"'
 
 
 def _command_rows(values: np.ndarray, fps: float, du: int, where: str) -> pd.DataFrame:
@@ -78,6 +109,11 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
     if commands is not None and len(files) != 1:
         raise ImportError_("--commands applies to a single imported file; import files one by one")
     datas = [read_any(f, fps) for f in files]
+    notes: list[str] = []
+    for k, (f, d) in enumerate(zip(files, datas)):
+        safe = _csv_safe(d.names, str(f), notes)
+        if safe != d.names:
+            datas[k] = dataclasses.replace(d, names=unique_names(safe, str(f), notes))
     rates = {d.fps for d in datas}
     if len(rates) > 1:
         raise ImportError_(f"frame rates differ between files ({sorted(rates)} Hz); a session has one")
@@ -85,7 +121,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
     names: list[str] = []
     for d in datas:
         names += [n for n in d.names if n not in names]
-    notes = [n for d in datas for n in d.notes]
+    notes = [n for d in datas for n in d.notes] + notes
     taken: set = set()
     takes, dus = [], set()
     for f, d in zip(files, datas):
@@ -127,7 +163,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
              "# - set each take's kind: rest (the face still), response (one DU's trapezoid: add du",
              "#   and trial), motion (anything else); a session needs a rest take to find markers",
              "# - name your DUs below and say which have position feedback",
-             'schema = "mocap-session/1"', f'name = "{out.name}"', f"fps = {float(rate)!r}", ""]
+             'schema = "mocap-session/1"', f"name = {_toml_string(out.name)}", f"fps = {float(rate)!r}", ""]
     for du in sorted(dus):
         lines += ["[[dus]]", f"id = {du}", f'name = "DU {du}"', "feedback = false", ""]
     for t in takes:
