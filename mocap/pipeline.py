@@ -411,6 +411,8 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     partial = RunResult(session=session, out_dir=out, calibration=calibration,
                         reconstruction=recon, averages=averages, rejections=rejections)
     audit = write_audit(partial, out)
+    from mocap.analysis.figures import audit_figures  # the audit's figures (outputs layer)
+    audit_figures(partial, audit, out)
     timings["audit_s"] = time.perf_counter() - t
     stages.append("audit")
 

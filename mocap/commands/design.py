@@ -105,14 +105,17 @@ def _responses(source: Path, dus):
     from mocap.analysis.design import SigmoidPair
 
     props_path = source / "properties.csv"
-    if not props_path.is_file():
-        from mocap.pipeline import run_session
+    if props_path.is_file():
+        props = pd.read_csv(props_path).set_index("du")
+    else:  # a session: identify its responses in a temporary run, removed afterwards
+        from mocap.pipeline import RunSettings, run_session
 
-        work = Path(tempfile.mkdtemp(prefix="mocap-design-"))
-        print(f"identifying the responses of {source} (results in {work})", file=sys.stderr)
-        run_session(source, work, progress=lambda m: print(m, file=sys.stderr))
-        props_path = work / "properties.csv"
-    props = pd.read_csv(props_path).set_index("du")
+        with tempfile.TemporaryDirectory(prefix="mocap-design-") as work:
+            print(f"identifying the responses of {source}", file=sys.stderr)
+            run_session(source, work, progress=lambda m: print(m, file=sys.stderr),
+                        settings=RunSettings(recording=False))
+            props = pd.read_csv(Path(work) / "properties.csv").set_index("du")
+        props_path = source / "session.toml"
     missing = [d for d in dus if d not in props.index]
     if missing:
         raise ValueError(f"{props_path}: no identified response for DUs {missing} "
