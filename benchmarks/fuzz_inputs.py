@@ -71,6 +71,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--examples", type=int, default=1000, help="examples per target (1000)")
     ap.add_argument("--out", type=Path, default=HERE / "fuzz_inputs.json")
+    ap.add_argument("--only", default="", help="run only targets whose name contains this")
     args = ap.parse_args(argv)
     from mocap.session import SessionWarning  # noqa: F401 - fail early if not installed
 
@@ -89,7 +90,8 @@ def main(argv=None) -> int:
                 path.parent.mkdir(exist_ok=True)
                 path.write_bytes(bad)
                 return check_import(path, tmp / "work" / "session")
-            results.append(_run(f"import {name}", args.examples, body))
+            if args.only in f"import {name}":
+                results.append(_run(f"import {name}", args.examples, body))
         kinds = {"2d_csv": lambda: sb.session_2d("csv"), "2d_mixed": lambda: sb.session_2d("mixed"),
                  "3d_csv": lambda: sb.session_3d("csv")}
         for kind, make in kinds.items():
@@ -105,7 +107,8 @@ def main(argv=None) -> int:
                 _, bad = data.draw(damaged(target.read_bytes()))
                 target.write_bytes(bad)
                 return check_session(root)
-            results.append(_run(f"load session {kind}", args.examples, body))
+            if args.only in f"load session {kind}":
+                results.append(_run(f"load session {kind}", args.examples, body))
     total = sum(r["examples"] for r in results)
     failures = sum(r.get("failure", 0) for r in results)
     summary = {"examples": total, "failures": failures, "targets": results,

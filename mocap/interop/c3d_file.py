@@ -62,42 +62,77 @@ def _first_number(group: dict, key: str, where: str) -> float:
     return value
 
 
+# The C3D reader's budget in its child process: memory beyond what the caller already maps, and
+# time. A valid file needs a few times its size in memory and reads at tens of MB/s; a damaged
+# header can make ezc3d allocate without bound (12 GB seen) or crash.
+CHILD_MEMORY_BYTES = (1 << 30, 40)  # 1 GiB + 40 x the file's size
+CHILD_SECONDS = (60.0, 2.0)  # 60 s + 2 s per MB of file
+
+
 def read_c3d(path: str | os.PathLike) -> MarkerData:
     """Read a C3D file's labeled points (and analog channels) as :class:`MarkerData`.
 
-    ezc3d can crash the interpreter (a segmentation fault) on a corrupted file, so where the
-    platform can fork the file is parsed in a child process: a crash there becomes an
-    ImportError_ naming the file instead of killing the caller.
+    ezc3d can crash the interpreter (a segmentation fault) or allocate without bound on a
+    corrupted file, so where the platform can fork the file is parsed in a child process with a
+    memory limit and a time limit (``CHILD_MEMORY_BYTES``, ``CHILD_SECONDS``): a crash, an
+    allocation failure or a timeout there becomes an ImportError_ naming the file instead of
+    killing or stalling the caller.
     """
     import multiprocessing as mp
 
     path = Path(path)
     if "fork" not in mp.get_all_start_methods():  # pragma: no cover - Windows
         return _read_c3d(path)
+    size = path.stat().st_size if path.is_file() else 0
+    limit_s = CHILD_SECONDS[0] + CHILD_SECONDS[1] * size / 1e6
     ctx = mp.get_context("fork")
     receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_read_c3d_child, args=(path, send), daemon=True)
+    child = ctx.Process(target=_read_c3d_child,
+                        args=(path, send, CHILD_MEMORY_BYTES[0] + CHILD_MEMORY_BYTES[1] * size),
+                        daemon=True)
     child.start()
     send.close()
+    outcome, why = None, "crashed on it"
     try:
-        outcome = receive.recv()
+        if receive.poll(limit_s):
+            outcome = receive.recv()
+        else:
+            why = f"took longer than {limit_s:.0f} s"
     except EOFError:  # the child died before answering
-        outcome = None
+        pass
     finally:
         receive.close()
+        if child.is_alive():
+            child.kill()
         child.join()
     if outcome is None:
-        raise ImportError_(f"{path}: not a readable C3D file (the C3D reader crashed on it, exit "
-                           f"code {child.exitcode}: the file is corrupted)")
+        raise ImportError_(f"{path}: not a readable C3D file (the C3D reader {why}, exit code "
+                           f"{child.exitcode}: the file is corrupted)")
     ok, value = outcome
     if not ok:
         raise value
     return value
 
 
-def _read_c3d_child(path: Path, send) -> None:
+def _limit_memory(extra_bytes: int) -> None:
+    """Cap this process's address space at what it maps now plus ``extra_bytes`` (Linux)."""
+    import resource
+
+    try:
+        with open("/proc/self/statm") as fh:
+            mapped = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + int(extra_bytes), resource.RLIM_INFINITY))
+    except (OSError, ValueError):  # pragma: no cover - no /proc: no cap
+        pass
+
+
+def _read_c3d_child(path: Path, send, memory_bytes: int) -> None:
+    _limit_memory(memory_bytes)
     try:
         outcome = (True, _read_c3d(path))
+    except MemoryError:
+        outcome = (False, ImportError_(f"{path}: not a readable C3D file (reading it needs more "
+                                       "memory than its size can justify: the file is corrupted)"))
     except BaseException as e:  # noqa: BLE001 - handed to the parent, which raises it
         outcome = (False, e)
     send.send(outcome)
