@@ -2,7 +2,7 @@
 
 Every importer (C3D, Motive CSV, QTM TSV, Vicon CSV) on damaged copies of real vendor files
 (``../shared/realdata``, read in place; those seeds skip where it is absent) and of files made
-here, and the session loader on damaged copies of small valid sessions. Bounded here (about 150
+here, and the session loader on damaged copies of small valid sessions. Bounded here (about 100
 examples per property, a few seconds each); ``benchmarks/fuzz_inputs.py`` runs thousands.
 The properties and the damages are in ``fuzz_inputs.py``.
 """
@@ -24,7 +24,7 @@ from fuzz_inputs import (
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-BOUNDED = settings(max_examples=150, deadline=None, database=None,
+BOUNDED = settings(max_examples=100, deadline=None, database=None,
                    suppress_health_check=[HealthCheck.function_scoped_fixture,
                                           HealthCheck.too_slow, HealthCheck.data_too_large])
 

@@ -127,7 +127,7 @@ def _fill_missing_frames(path: Path, frames: np.ndarray, X: np.ndarray, notes: l
     bad = np.flatnonzero(~np.isfinite(frames) | (frames != np.round(frames)) | (np.abs(frames) > 2**53))
     if bad.size:
         i = int(bad[0])
-        raise ImportError_(f"{path} line {first_line + i}: frame number {frames[i]!r} is not an "
+        raise ImportError_(f"{path} line {first_line + i}: frame number {frames[i]:g} is not an "
                            "integer (a blank line or a damaged cell)")
     frames = frames.astype(np.int64)
     if np.any(np.diff(frames) <= 0):
