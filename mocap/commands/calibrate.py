@@ -9,7 +9,7 @@ from pathlib import Path
 DESCRIPTION = """\
 Calibrate the camera rig from the session's wand take (a waved wand of collinear markers, the
 manifest's [wand]) and ground take (the square that sets the world frame, the manifest's
-[ground]), with no prior knowledge of where the cameras are. Writes calibration.toml (OUTPUTS.md)
+[ground]), with no prior knowledge of where the cameras are. Writes calibration.toml (docs/outputs.md)
 with a quality report; progress goes to stderr.
 
 examples:

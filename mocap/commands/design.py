@@ -10,7 +10,7 @@ from pathlib import Path
 DESCRIPTION = """\
 Design the command plan of one DU or several at once so that the face follows a motion plan
 P(t) (the paper's plans A-E, neutral to smile, then the return 1 - P; or a FILE with columns
-time_s,P that may reverse anywhere). Writes a FORMAT.md command file (integers 0..255, one row
+time_s,P that may reverse anywhere). Writes a docs/format.md command file (integers 0..255, one row
 per command step) that 'mocap simulate --commands' plays on the virtual face, or a robot plays.
 
 --method paper (default): the paper's inverse response, c = R_fwd^-1(P) while rising and

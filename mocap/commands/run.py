@@ -1,4 +1,4 @@
-"""``mocap run``: process a session, raw camera exports to results (OUTPUTS.md)."""
+"""``mocap run``: process a session, raw camera exports to results (docs/outputs.md)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 DESCRIPTION = """\
-Process a capture session (FORMAT.md) and write the results (OUTPUTS.md) into OUT_DIR.
+Process a capture session (docs/format.md) and write the results (docs/outputs.md) into OUT_DIR.
 The raw session is never modified; every output file is written atomically.
 
 examples:

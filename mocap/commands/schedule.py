@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 DESCRIPTION = """\
-Write an identification battery as FORMAT.md command files, to play on a robot (or on the
+Write an identification battery as docs/format.md command files, to play on a robot (or on the
 virtual face with 'mocap simulate --commands'): per DU the paper's trapezoid (100 steps of 50 ms),
 the same at a fast rate (25 ms steps) and a slow one (0.3 s steps), and a partial sweep with
 reversals inside the range (0 -> 80 % -> 30 % -> 100 % -> 10 % -> 60 % -> 0); per DU pair both
