@@ -129,3 +129,17 @@ def test_the_real_file_that_crashed_ezc3d(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(ImportError_, match=r"optotrak\.c3d: not a readable C3D file"):
         read_c3d(path)
+
+
+def test_a_bad_commands_file_is_refused_before_anything_is_written(tmp_path):
+    take = tmp_path / "v.csv"
+    take.write_text(VICON)
+    cmd = tmp_path / "c.csv"
+    cmd.write_text("time_s,du,command\n0,4,0\n0.5,4,12.5\n")
+    with pytest.raises(ImportError_, match=r"c\.csv line 3: command '12\.5' is not an integer"):
+        import_files([take], tmp_path / "s", commands=cmd)
+    assert not (tmp_path / "s").exists()
+    cmd.write_text("time_s,du,command\n0,4,0\n0.5,4,12\n")
+    rep = import_files([take], tmp_path / "s", commands=cmd)
+    assert rep["dus"] == [4]
+    assert load_session(tmp_path / "s").read_commands("v")["command"].tolist() == [0, 12]

@@ -74,6 +74,32 @@ def _command_rows(values: np.ndarray, fps: float, du: int, where: str) -> pd.Dat
     return pd.DataFrame({"time_s": np.round(change / fps, 9), "du": du, "command": v[change]})
 
 
+def _read_command_csv(path: Path) -> pd.DataFrame:
+    """A command file given with ``--commands`` (time_s,du,command), checked row by row: time_s
+    finite >= 0, du an integer, command an integer 0..255; errors name the file and line."""
+    try:
+        c = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError) as e:
+        raise ImportError_(f"{path}: not a readable CSV file ({e})") from None
+    missing = [k for k in ("time_s", "du", "command") if k not in c.columns]
+    if missing:
+        raise ImportError_(f"{path} line 1: expected columns time_s,du,command; missing {missing}")
+    out = {}
+    for col, lo, hi, integer in (("time_s", 0.0, np.inf, False), ("du", -np.inf, np.inf, True),
+                                 ("command", 0, 255, True)):
+        values = pd.to_numeric(c[col].str.strip(), errors="coerce").to_numpy(float)
+        bad = ~np.isfinite(values) | (values < lo) | (values > hi)
+        if integer:
+            bad |= values != np.round(values)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ImportError_(f"{path} line {i + 2}: {col} {c[col].iloc[i]!r} is not "
+                               + ("an integer command 0..255" if col == "command" else
+                                  "an integer DU id" if col == "du" else "a time in s >= 0"))
+        out[col] = values.astype(np.int64) if integer else values
+    return pd.DataFrame(out)
+
+
 def _analog_commands(data: MarkerData) -> dict[int, np.ndarray]:
     out = {}
     n = data.X.shape[0]
@@ -108,6 +134,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         raise ImportError_(f"{out}: already holds a session; choose a new folder")
     if commands is not None and len(files) != 1:
         raise ImportError_("--commands applies to a single imported file; import files one by one")
+    command_table = None if commands is None else _read_command_csv(Path(commands))
     datas = [read_any(f, fps) for f in files]
     notes: list[str] = []
     for k, (f, d) in enumerate(zip(files, datas)):
@@ -142,11 +169,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         entry = {"name": name, "file": f"takes/{name}.csv", "source": str(f)}
         cmd = {}
         if commands is not None:
-            c = pd.read_csv(commands)
-            missing_cols = {"time_s", "du", "command"} - set(c.columns)
-            if missing_cols:
-                raise ImportError_(f"{commands}: expected columns time_s,du,command; missing "
-                                   f"{sorted(missing_cols)}")
+            c = command_table
             write_csv(c, out / "takes" / f"{name}_commands.csv")
             cmd = {int(du): None for du in c["du"].unique()}
         else:
