@@ -217,3 +217,19 @@ def test_a_marker_template_linked_from_outside_is_refused(tmp_path):
     os.symlink(outside, root / "markers.csv")
     with pytest.raises(SessionError, match="markers.csv.*leaves the session folder"):
         load_session(root)
+
+
+def test_simulate_replaces_only_a_simulated_session(tmp_path):
+    from mocap.commands.simulate import simulated
+
+    real = sb.session_3d("csv")
+    real.manifest["name"] = "robot-face-day1"
+    real.write(tmp_path / "lab" / "session")
+    assert not simulated(tmp_path / "lab")
+    virtual = sb.session_3d("csv")
+    virtual.manifest["name"] = "virtual-face-sample-seed1"  # as the committed sample_data
+    virtual.write(tmp_path / "sample" / "session")
+    assert simulated(tmp_path / "sample")
+    (tmp_path / "lab" / "truth").mkdir()
+    (tmp_path / "lab" / "truth" / "truth.json").write_text("{}")
+    assert simulated(tmp_path / "lab")
