@@ -2,8 +2,8 @@
 
 Every importer (C3D, Motive CSV, QTM TSV, Vicon CSV) on damaged copies of real vendor files
 (``../shared/realdata``, read in place; those seeds skip where it is absent) and of files made
-here, and the session loader on damaged copies of small valid sessions. Bounded here (about 100
-examples per property, a few seconds each); ``benchmarks/fuzz_inputs.py`` runs thousands.
+here, and the session loader on damaged copies of small valid sessions. Bounded here (100
+examples per property, 40 for the two large real C3D files: a few seconds each); ``benchmarks/fuzz_inputs.py`` runs thousands.
 The properties and the damages are in ``fuzz_inputs.py``.
 """
 
@@ -24,9 +24,12 @@ from fuzz_inputs import (
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-BOUNDED = settings(max_examples=100, deadline=None, database=None,
-                   suppress_health_check=[HealthCheck.function_scoped_fixture,
-                                          HealthCheck.too_slow, HealthCheck.data_too_large])
+_HEALTH = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large]
+BOUNDED = settings(max_examples=100, deadline=None, database=None, suppress_health_check=_HEALTH)
+# the two real C3D files with analog data take about 0.1 s per example on a quiet machine
+BOUNDED_HEAVY = settings(max_examples=40, deadline=None, database=None,
+                         suppress_health_check=_HEALTH)
+HEAVY = ("vicon_nexus24_markers_emg.c3d", "qualisys_qtm217_forceplates.c3d")
 
 GENERATED = ("motive.csv", "qtm.tsv", "vicon.csv", "ours.c3d")
 
@@ -52,10 +55,20 @@ def test_a_damaged_generated_file_imports_or_gets_a_clear_error(name, seeds, tmp
 
 
 @pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata is absent")
-@pytest.mark.parametrize("name", REAL_IMPORTS)
+@pytest.mark.parametrize("name", [n for n in REAL_IMPORTS if n not in HEAVY])
 @BOUNDED
 @given(data=st.data())
 def test_a_damaged_real_file_imports_or_gets_a_clear_error(name, tmp_path_factory, data):
+    folder = tmp_path_factory.mktemp("fuzz")
+    _fuzz_import((REALDATA / name).read_bytes(), name, folder, data)
+
+
+@pytest.mark.skipif(not REALDATA.is_dir(), reason="../shared/realdata is absent")
+@pytest.mark.parametrize("name", HEAVY)
+@BOUNDED_HEAVY
+@given(data=st.data())
+def test_a_damaged_real_c3d_with_analogs_imports_or_gets_a_clear_error(name, tmp_path_factory,
+                                                                       data):
     folder = tmp_path_factory.mktemp("fuzz")
     _fuzz_import((REALDATA / name).read_bytes(), name, folder, data)
 
