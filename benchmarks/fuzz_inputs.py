@@ -31,6 +31,7 @@ from fuzz_inputs import (  # noqa: E402
     check_session,
     damaged,
     generated_imports,
+    mutate_manifest,
 )
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
@@ -112,6 +113,20 @@ def main(argv=None) -> int:
                 return check_session(root)
             if chosen(f"load session {kind}"):
                 results.append(_run(f"load session {kind}", args.examples, body))
+
+            def body_manifest(data, make=make):
+                import shutil
+
+                root = tmp / "sess"
+                if root.exists():
+                    shutil.rmtree(root)
+                spec = make()
+                if not mutate_manifest(data.draw, spec.manifest):
+                    return "skipped"
+                spec.write(root)
+                return check_session(root)
+            if chosen(f"manifest values {kind}"):
+                results.append(_run(f"manifest values {kind}", args.examples, body_manifest))
     total = sum(r["examples"] for r in results)
     failures = sum(r.get("failure", 0) for r in results)
     summary = {"examples": total, "failures": failures, "targets": results,

@@ -146,6 +146,45 @@ def damaged(draw, data: bytes, max_mutations: int = 3) -> tuple[str, bytes]:
     return "; ".join(what), data
 
 
+TOML_VALUES = st.one_of(
+    st.integers(-(2**63), 2**63 - 1), st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(), st.text(max_size=20), st.just(""), st.just("../outside.csv"),
+    st.just("/etc/hosts"), st.lists(st.integers(-5, 300), max_size=4),
+    st.lists(st.floats(allow_nan=True), max_size=4),
+    st.lists(st.lists(st.floats(-1e3, 1e3), max_size=4), max_size=4),
+    st.dictionaries(st.sampled_from(["id", "name", "x"]), st.integers(), max_size=2),
+)
+
+
+def _manifest_paths(doc, prefix=()):
+    """Every key path of a manifest dict (keys and list indices)."""
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc)
+    for k, v in items:
+        yield (*prefix, k)
+        if isinstance(v, (dict, list)):
+            yield from _manifest_paths(v, (*prefix, k))
+
+
+def mutate_manifest(draw, manifest: dict) -> bool:
+    """Delete one key of ``manifest`` (a session_builders manifest dict) or give it a value of
+    any TOML type, in place; False when the value is one the tests' TOML writer cannot write."""
+    from session_builders import toml_dumps
+
+    path = draw(st.sampled_from(sorted(_manifest_paths(manifest), key=repr)))
+    parent = manifest
+    for k in path[:-1]:
+        parent = parent[k]
+    if isinstance(parent, dict) and draw(st.booleans()):
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = draw(TOML_VALUES)
+    try:
+        toml_dumps(manifest)
+    except TypeError:
+        return False
+    return True
+
+
 # --------------------------------------------------------------------------------------------
 # Properties
 

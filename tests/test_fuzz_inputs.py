@@ -20,6 +20,7 @@ from fuzz_inputs import (
     check_session,
     damaged,
     generated_imports,
+    mutate_manifest,
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -101,3 +102,15 @@ def test_a_damaged_session_loads_or_gets_a_clear_error(kind, tmp_path_factory, d
 @pytest.mark.parametrize("kind", sorted(SESSIONS))
 def test_the_undamaged_sessions_load(kind, tmp_path):
     assert check_session(SESSIONS[kind]().write(tmp_path / "s"), must_load=True) == "ok"
+
+
+
+@pytest.mark.parametrize("kind", sorted(SESSIONS))
+@BOUNDED
+@given(data=st.data())
+def test_a_manifest_value_of_any_type_gets_a_clear_error(kind, tmp_path_factory, data):
+    spec = SESSIONS[kind]()
+    if mutate_manifest(data.draw, spec.manifest):
+        root = tmp_path_factory.mktemp("manifest") / "s"
+        spec.write(root)
+        check_session(root)
