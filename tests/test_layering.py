@@ -55,6 +55,7 @@ LAYER_OF = {
     "mocap.discrepancy_input": "workflows",
     "mocap.discrepancy_io": "workflows",
     "mocap.design_io": "workflows",
+    "mocap.truth_properties": "workflows",  # the simulator's truth through the analyses' estimators
     "mocap.api": "workflows",
     "mocap.recording": "outputs",
     "mocap.analysis.figures": "outputs",
@@ -83,12 +84,6 @@ PENDING = {
     ("mocap.pipeline", "mocap.recording"): "the run writes session.rrd (branch pipe)",
     ("mocap.discrepancy_io", "mocap.analysis.figures"): "the workflow draws its figures",
     ("mocap.discrepancy_io", "mocap.recording"): "the workflow writes discrepancy.rrd",
-    ("mocap.simulate.face", "mocap.analysis.hysteresis"): "the virtual face's PI operator (fam)",
-    ("mocap.simulate.effects", "mocap.analysis.hysteresis"): "the hidden effects' play (fam)",
-    ("mocap.simulate.session_writer", "mocap.analysis.design"): "the smile design takes (fam)",
-    ("mocap.simulate.session_writer", "mocap.analysis.displacement"): "truth properties (fam)",
-    ("mocap.simulate.session_writer", "mocap.analysis.properties"): "truth properties (fam)",
-    ("mocap.simulate.session_writer", "mocap.reconstruct.trials"): "NORMALISE_S (fam)",
 }
 
 
