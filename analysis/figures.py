@@ -266,3 +266,21 @@ def design_comparison(path, title, evaluations: dict) -> Path:
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10, y=1.08)
     return _save(fig, path)
+
+
+def audit_figures(result, audit: dict, out: Path) -> list[Path]:
+    """The audit's figures of a run (``mocap.pipeline.RunResult``) and its audit
+    (``mocap.audit.audit_capture``) into ``out/figures``: visibility per marker and camera (raw
+    sessions) and the noise floor per marker on the face. Returns the paths written."""
+    recon = result.reconstruction
+    written = []
+    if "views" in recon.capture and result.calibration is not None:
+        mf = np.maximum(recon.capture["marker_frames"], 1)
+        written.append(audit_visibility(out / "figures" / "audit_visibility.png",
+                                        list(recon.markers.names), list(result.calibration.rig.ids),
+                                        recon.capture["views"] / mf[None]))
+    noise = np.array([m["noise_floor_mm"] for m in audit["markers"]])
+    written.append(audit_noise_map(out / "figures" / "audit_noise.png", recon.markers.rest_mm, noise,
+                                   [m["marker"] for m in audit["markers"] if m["verdict"] != "pass"],
+                                   list(recon.markers.names)))
+    return written

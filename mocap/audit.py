@@ -18,8 +18,9 @@ written into audit.json):
 The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
 bad markers are left out by the rejections; a failing calibration or camera condemns the capture).
 
-Pure computation in ``audit_capture``; ``write_audit`` writes audit.json, audit.md and two
-figures (visibility per marker and camera; noise floor per marker on the face).
+Pure computation in ``audit_capture``; ``write_audit`` writes audit.json and audit.md; the two
+figures (visibility per marker and camera; noise floor per marker on the face) are drawn by
+``mocap.analysis.figures.audit_figures`` (the outputs layer).
 """
 
 from __future__ import annotations
@@ -168,19 +169,12 @@ def _markdown(a: dict) -> str:
 
 
 def write_audit(result, out: Path, audit: dict | None = None) -> dict:
-    """Write audit.json, audit.md and the audit figures into ``out``; return the audit."""
+    """Write audit.json and audit.md into ``out``; return the audit.
+
+    The audit's figures are drawn by the outputs layer
+    (:func:`mocap.analysis.figures.audit_figures`): a workflow returns data.
+    """
     a = audit if audit is not None else audit_capture(result)
     write_text(out / "audit.json", json.dumps(a, indent=2, default=float))
     write_text(out / "audit.md", _markdown(a))
-    from mocap.analysis.figures import audit_noise_map, audit_visibility
-
-    recon = result.reconstruction
-    if "views" in recon.capture and result.calibration is not None:
-        mf = np.maximum(recon.capture["marker_frames"], 1)
-        audit_visibility(out / "figures" / "audit_visibility.png", list(recon.markers.names),
-                         list(result.calibration.rig.ids), recon.capture["views"] / mf[None])
-    noise = [m["noise_floor_mm"] for m in a["markers"]]
-    audit_noise_map(out / "figures" / "audit_noise.png", recon.markers.rest_mm, np.array(noise),
-                    [m["marker"] for m in a["markers"] if m["verdict"] != "pass"],
-                    list(recon.markers.names))
     return a

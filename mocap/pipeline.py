@@ -24,6 +24,7 @@ import pandas as pd
 from mocap import __version__
 from mocap.analysis.paper_indices import schedule_timing
 from mocap.atomic import write_csv, write_parquet, write_text
+from mocap.paths import check_output_path
 from mocap.reconstruct.correspondence import (
     ReconstructionSettings,
     blob_camera_index,
@@ -339,6 +340,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     timings: dict[str, float] = {}
     session = load_session(session_dir)
     out = Path(out_dir)
+    check_output_path(out, sessions=[session.root])
     out.mkdir(parents=True, exist_ok=True)
     say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
 
@@ -410,6 +412,8 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
     partial = RunResult(session=session, out_dir=out, calibration=calibration,
                         reconstruction=recon, averages=averages, rejections=rejections)
     audit = write_audit(partial, out)
+    from mocap.analysis.figures import audit_figures  # the audit's figures (outputs layer)
+    audit_figures(partial, audit, out)
     timings["audit_s"] = time.perf_counter() - t
     stages.append("audit")
 

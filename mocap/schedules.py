@@ -159,3 +159,100 @@ def identification_battery(dus: Sequence[int], pairs: Sequence[tuple[int, int]] 
         takes.append(BatteryTake(f"du{a:02d}_du{b:02d}_shift", (a, b), shifted,
                                  "two DUs' trapezoids, the second 1.25 s later"))
     return takes
+
+
+# The paper's time axis of a trapezoid take (reference METHOD.md: windows and t -> c conversion)
+
+TIME_TOL_S = 1e-9  # frames within this of a window's edge are inside it (FORMAT.md's tolerance)
+
+
+@dataclass(frozen=True)
+class ScheduleTiming:
+    """The paper's time axis of one take, in the take's own seconds (frame f at f / fps).
+
+    t0_s: t = 0 (step s = 0); step_s: one command step; fwd_s: T_fwd; t_end_s: absolute time of
+    t_end; bwd_s: T_bwd; top: the top command (255 for the paper).
+    """
+
+    t0_s: float
+    step_s: float
+    fwd_s: float
+    t_end_s: float
+    bwd_s: float
+    top: float
+
+    def frame_times(self, n_frames: int, fps: float) -> np.ndarray:
+        """(n_frames,) t of each frame on the paper's axis (s; negative before step 0)."""
+        return np.arange(n_frames) / float(fps) - self.t0_s
+
+    def forward(self, n_frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+        """(frames, c): the forward window's frame indices and their abscissa c = top t / T_fwd."""
+        t = self.frame_times(n_frames, fps)
+        f = np.flatnonzero((t >= -TIME_TOL_S) & (t <= self.fwd_s + TIME_TOL_S))
+        return f, self.top * t[f] / self.fwd_s
+
+    def backward(self, n_frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+        """(frames, c): the backward window, c = top (t_end - t) / T_bwd."""
+        t = self.frame_times(n_frames, fps)
+        end = self.t_end_s - self.t0_s
+        f = np.flatnonzero((t >= end - self.bwd_s - TIME_TOL_S) & (t <= end + TIME_TOL_S))
+        return f, self.top * (end - t[f]) / self.bwd_s
+
+    def schedule(self, n_frames: int, fps: float) -> np.ndarray:
+        """(frames,) the schedule's frames, 0 <= t < t_end + one step (duration T_e)."""
+        t = self.frame_times(n_frames, fps)
+        end = self.t_end_s - self.t0_s + self.step_s
+        return np.flatnonzero((t >= -TIME_TOL_S) & (t < end - TIME_TOL_S))
+
+    def origin_frame(self, fps: float) -> int:
+        """The frame at t = 0 (the first frame at or after step 0's start)."""
+        return max(int(np.ceil(self.t0_s * float(fps) - 1e-6)), 0)
+
+
+def schedule_timing(time_s, command, *, source: str = "command rows") -> ScheduleTiming:
+    """The paper's time axis from one DU's command rows (a trapezoid: rise, hold, fall to 0).
+
+    time_s, command : (n_rows,) the rows of one DU (any order; for equal times the later row
+    wins, as FORMAT.md says). Raises ValueError naming ``source`` when the rows are not a
+    rising ramp of several steps, a hold at the top, and a falling ramp back to 0.
+    """
+    t = np.asarray(time_s, float)
+    c = np.asarray(command, float)
+    if t.shape != c.shape or t.ndim != 1:
+        raise ValueError(f"{source}: expected matching 1-D time_s and command, got {t.shape}, {c.shape}")
+    order = np.argsort(t, kind="stable")
+    t, c = t[order], c[order]
+    last = np.r_[np.diff(t) > TIME_TOL_S, True]  # the last row of each time wins
+    t, c = t[last], c[last]
+    change = np.r_[True, np.diff(c) != 0]  # rows that change the command (repeats add nothing)
+    t, c = t[change], c[change]
+    if c.size == 0 or c[0] != 0:
+        c = np.r_[0.0, c]  # the command is 0 before a DU's first row (FORMAT.md)
+        t = np.r_[-np.inf, t]
+    top = float(c.max())
+    i_top = int(np.argmax(c == top))
+    i_fall = i_top + int(np.argmax(c[i_top:] < top)) if np.any(c[i_top:] < top) else -1
+    if top <= 0 or i_top < 2 or i_fall < 0:
+        raise ValueError(f"{source}: expected a trapezoid (a rising ramp of several steps to the "
+                         f"top command, a hold, a fall back to 0), got commands {c.tolist()[:12]}...")
+    i_zero = i_fall + int(np.argmax(c[i_fall:] == 0)) if np.any(c[i_fall:] == 0) else -1
+    rise = slice(1, i_top + 1)
+    if i_zero < 0 or np.any(np.diff(c[rise]) <= 0) or np.any(np.diff(c[i_fall - 1: i_zero + 1]) >= 0):
+        raise ValueError(f"{source}: expected a monotone rise to {top:g} and a monotone fall back "
+                         "to 0 (the paper's trapezoid)")
+    steps = np.diff(t[rise])
+    step = float(np.median(steps))
+    if not np.isfinite(step) or step <= 0:
+        raise ValueError(f"{source}: cannot read the step time from the rising ramp's rows")
+    t0 = float(t[1] - step)  # step 1 starts one step after t = 0
+    fall0 = float(t[i_fall] - step)  # the last step at the top starts one step before the fall
+    return ScheduleTiming(t0_s=t0, step_s=step, fwd_s=float(t[i_top] - t0),
+                          t_end_s=float(t[i_zero]), bwd_s=float(t[i_zero] - fall0), top=top)
+
+
+def timing_from_series(command: np.ndarray, fps: float) -> ScheduleTiming:
+    """:func:`schedule_timing` from a per-frame command series (n_frames,): each change is a row
+    at its frame's time. The step time is then known to a frame; prefer the command file."""
+    c = np.asarray(command, float)
+    f = np.r_[0, np.flatnonzero(np.diff(c) != 0) + 1]
+    return schedule_timing(f / float(fps), c[f], source="command series")

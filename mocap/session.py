@@ -33,7 +33,7 @@ import tomllib
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 from typing import Any
 
 import numpy as np
@@ -375,6 +375,7 @@ def load_session(path: str | Path) -> Session:
 
     markers = None
     if (root / MARKERS_FILE).exists():
+        _contained(root, MARKERS_FILE, MARKERS_FILE)
         markers = _read_markers(_Source(root / MARKERS_FILE, MARKERS_FILE), notes)
 
     for note in notes:
@@ -631,14 +632,35 @@ def _parse_takes(doc, root: Path, du_ids: set[int], notes) -> tuple[TakeInfo, ..
             TakeInfo(
                 name=name,
                 kind=kind,
-                file=root / file,
-                commands=None if commands is None else root / commands,
+                file=_contained(root, file, f"{prefix}.file"),
+                commands=None if commands is None else _contained(root, commands, f"{prefix}.commands"),
                 du=du,
                 trial=trial,
                 plan=plan,
             )
         )
     return tuple(takes)
+
+
+def _contained(root: Path, value: str, key: str) -> Path:
+    """``root / value`` for a manifest path that is relative and stays inside the session folder
+    once links are resolved (FORMAT.md); otherwise a SessionError naming ``key``."""
+    if "\0" in value:
+        raise SessionError(f"{MANIFEST}: {key}: {_show(value)} holds a NUL character; expected a "
+                           "path relative to the session folder")
+    if Path(value).is_absolute() or PureWindowsPath(value).is_absolute() or value.startswith(("/", "\\")) \
+            or PureWindowsPath(value).drive:
+        raise SessionError(f"{MANIFEST}: {key}: {_show(value)} is an absolute path; expected a "
+                           "path relative to the session folder")
+    path = root / value
+    try:
+        resolved = path.resolve()
+    except (OSError, RuntimeError) as exc:  # a link loop, a name too long
+        raise SessionError(f"{MANIFEST}: {key}: {_show(value)} cannot be resolved ({exc})") from None
+    if not resolved.is_relative_to(root):
+        raise SessionError(f"{MANIFEST}: {key}: {_show(value)} leaves the session folder (it "
+                           f"resolves to {resolved}); expected a path inside {root}")
+    return path
 
 
 def _inspect_takes(root: Path, takes: Sequence[TakeInfo], notes: list[str]) -> str:

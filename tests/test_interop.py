@@ -141,7 +141,7 @@ def test_import_cli_reports_what_to_complete(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "set each take's kind" in out and "note:" in out
     assert main(["import", str(p), "--out", str(tmp_path / "s")]) == 1  # never overwrites
-    assert "already holds a session" in capsys.readouterr().err
+    assert "is the session folder" in capsys.readouterr().err
 
 
 @needs_realdata

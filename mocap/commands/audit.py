@@ -25,10 +25,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.calib.wand_calibration import CalibrationError
+    from mocap.paths import check_output_path
     from mocap.pipeline import RunSettings, run_session
     from mocap.session import SessionError
 
     try:
+        check_output_path(args.out, sessions=[args.session_dir])
         res = run_session(args.session_dir, args.out, settings=RunSettings(analyze=False),
                           progress=lambda m: print(m, file=sys.stderr, flush=True))
     except (SessionError, CalibrationError) as e:

@@ -28,7 +28,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.batch import run_batch
+    from mocap.paths import OutputPathError, check_output_path
 
+    try:
+        check_output_path(args.out, sessions=args.sessions)
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     summary = run_batch(args.sessions, args.out, scheduler=args.scheduler, workers=args.workers,
                         progress=lambda m: print(m, file=sys.stderr, flush=True))
     print(f"{summary['ok']} sessions done, {summary['failed']} failed in {summary['seconds']} s; "

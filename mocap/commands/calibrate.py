@@ -9,7 +9,7 @@ from pathlib import Path
 DESCRIPTION = """\
 Calibrate the camera rig from the session's wand take (a waved wand of collinear markers, the
 manifest's [wand]) and ground take (the square that sets the world frame, the manifest's
-[ground]), with no prior knowledge of where the cameras are. Writes calibration.toml (OUTPUTS.md)
+[ground]), with no prior knowledge of where the cameras are. Writes calibration.toml (docs/outputs.md)
 with a quality report; progress goes to stderr.
 
 examples:
@@ -31,12 +31,16 @@ def run(args: argparse.Namespace) -> int:
     from mocap.calib.calibration_file import write_calibration
     from mocap.calib.opencv_yaml import write_opencv_yaml
     from mocap.calib.wand_calibration import CalibrationError, calibrate_session
+    from mocap.paths import check_output_path
     from mocap.session import SessionError, load_session
 
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
     try:
+        check_output_path(args.out, sessions=[args.session_dir])
+        if args.opencv_dir is not None:
+            check_output_path(args.opencv_dir, sessions=[args.session_dir], option="--opencv-dir")
         session = load_session(args.session_dir)
         if session.dimension != "2d":
             raise CalibrationError(f"{args.session_dir}: a labeled 3D session has no cameras to calibrate")

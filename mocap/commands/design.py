@@ -10,7 +10,7 @@ from pathlib import Path
 DESCRIPTION = """\
 Design the command plan of one DU or several at once so that the face follows a motion plan
 P(t) (the paper's plans A-E, neutral to smile, then the return 1 - P; or a FILE with columns
-time_s,P that may reverse anywhere). Writes a FORMAT.md command file (integers 0..255, one row
+time_s,P that may reverse anywhere). Writes a docs/format.md command file (integers 0..255, one row
 per command step) that 'mocap simulate --commands' plays on the virtual face, or a robot plays.
 
 --method paper (default): the paper's inverse response, c = R_fwd^-1(P) while rising and
@@ -105,14 +105,17 @@ def _responses(source: Path, dus):
     from mocap.analysis.design import SigmoidPair
 
     props_path = source / "properties.csv"
-    if not props_path.is_file():
-        from mocap.pipeline import run_session
+    if props_path.is_file():
+        props = pd.read_csv(props_path).set_index("du")
+    else:  # a session: identify its responses in a temporary run, removed afterwards
+        from mocap.pipeline import RunSettings, run_session
 
-        work = Path(tempfile.mkdtemp(prefix="mocap-design-"))
-        print(f"identifying the responses of {source} (results in {work})", file=sys.stderr)
-        run_session(source, work, progress=lambda m: print(m, file=sys.stderr))
-        props_path = work / "properties.csv"
-    props = pd.read_csv(props_path).set_index("du")
+        with tempfile.TemporaryDirectory(prefix="mocap-design-") as work:
+            print(f"identifying the responses of {source}", file=sys.stderr)
+            run_session(source, work, progress=lambda m: print(m, file=sys.stderr),
+                        settings=RunSettings(recording=False))
+            props = pd.read_csv(Path(work) / "properties.csv").set_index("du")
+        props_path = source / "session.toml"
     missing = [d for d in dus if d not in props.index]
     if missing:
         raise ValueError(f"{props_path}: no identified response for DUs {missing} "
@@ -141,6 +144,7 @@ def _paper_rows(plan, plan_file, responses, timing, dus):
 def run(args: argparse.Namespace) -> int:
     from mocap.analysis.plans import PLAN_NAMES
     from mocap.atomic import write_csv
+    from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
     plan = args.plan.upper()
@@ -171,6 +175,9 @@ def run(args: argparse.Namespace) -> int:
         return 1
     timing = _timing(args)
     try:
+        sources = [args.source, *([args.measured] if args.measured else [])]
+        check_output_path(args.out, sessions=[s for s in map(session_dir_of, sources) if s],
+                          inputs=[f for f in (plan_file, args.reference) if f is not None])
         if args.method == "paper":
             if args.refine or args.check:
                 print("error: --refine and --check need --method model", file=sys.stderr)

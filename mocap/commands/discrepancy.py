@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.analysis.model_effects import CATALOGUE
     from mocap.discrepancy_io import run as run_workflow
+    from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
     names = [e.strip() for e in args.effects.split(",") if e.strip()]
@@ -65,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
                                    jobs=args.jobs or os.cpu_count() or 1)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     try:
+        check_output_path(args.out, sessions=[s for s in [session_dir_of(args.path)] if s])
         res = run_workflow(args.path, args.out, settings, progress=say,
                            recording=not args.no_recording)
     except (SessionError, ValueError, OSError) as e:

@@ -26,9 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mocap.interop.marker_data import ImportError_
     from mocap.interop.session_io import export_c3d
+    from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
     try:
+        check_output_path(args.c3d, sessions=[s for s in [session_dir_of(args.source)] if s],
+                          option="--c3d")
         written = export_c3d(args.source, args.c3d, args.take)
     except (ImportError_, SessionError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

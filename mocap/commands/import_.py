@@ -8,7 +8,7 @@ from pathlib import Path
 
 DESCRIPTION = """\
 Turn C3D files, OptiTrack Motive CSV exports, Qualisys QTM TSV 3D exports and Vicon Nexus CSV
-exports into a labeled session (FORMAT.md, 3D takes), one take per file. Commands come from C3D
+exports into a labeled session (docs/format.md, 3D takes), one take per file. Commands come from C3D
 analog channels named DU<n> or from --commands (one file only). The manifest is written for you
 to complete (take kinds, DU names); every repair made on the way (units converted, duplicate
 labels renamed, rigid bodies ignored, missing frames filled as gaps) is listed in
@@ -30,7 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mocap.interop.marker_data import ImportError_
     from mocap.interop.session_io import import_files
+    from mocap.paths import OutputPathError, check_output_path
 
+    try:
+        check_output_path(args.out, inputs=[*args.files, *([args.commands] if args.commands else [])])
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     try:
         report = import_files(args.files, args.out, commands=args.commands, fps=args.fps)
     except ImportError_ as e:

@@ -1,4 +1,4 @@
-"""``mocap run``: process a session, raw camera exports to results (OUTPUTS.md)."""
+"""``mocap run``: process a session, raw camera exports to results (docs/outputs.md)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 DESCRIPTION = """\
-Process a capture session (FORMAT.md) and write the results (OUTPUTS.md) into OUT_DIR.
+Process a capture session (docs/format.md) and write the results (docs/outputs.md) into OUT_DIR.
 The raw session is never modified; every output file is written atomically.
 
 examples:
@@ -32,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.calib.wand_calibration import CalibrationError
+    from mocap.paths import check_output_path
     from mocap.pipeline import run_session
     from mocap.session import SessionError
 
@@ -49,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
         settings = dataclasses.replace(settings, jobs=max(1, args.jobs))
     try:
+        check_output_path(args.out, sessions=[args.session_dir])
         result = run_session(args.session_dir, args.out, progress=say, settings=settings)
     except (SessionError, CalibrationError) as e:
         print(f"error: {e}", file=sys.stderr)

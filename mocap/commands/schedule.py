@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 DESCRIPTION = """\
-Write an identification battery as FORMAT.md command files, to play on a robot (or on the
+Write an identification battery as docs/format.md command files, to play on a robot (or on the
 virtual face with 'mocap simulate --commands'): per DU the paper's trapezoid (100 steps of 50 ms),
 the same at a fast rate (25 ms steps) and a slow one (0.3 s steps), and a partial sweep with
 reversals inside the range (0 -> 80 % -> 30 % -> 100 % -> 10 % -> 60 % -> 0); per DU pair both
@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.atomic import write_csv, write_text
+    from mocap.paths import OutputPathError, check_output_path
     from mocap.schedules import identification_battery, trapezoid
 
     try:
@@ -38,6 +39,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"error: --dus 1,4,7 and --pairs 1-7,4-7 expected, got {args.dus!r} {args.pairs!r}",
               file=sys.stderr)
+        return 1
+    try:
+        check_output_path(args.out)
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 1
     lines = ["# Identification battery", "", "| file | DUs | exposes | duration (s) |", "|---|---|---|---|"]
     total = 0.0

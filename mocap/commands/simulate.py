@@ -62,16 +62,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="write into a non-empty OUT_DIR")
 
 
+def simulated(out: Path) -> bool:
+    """Whether ``out/session`` was written by this command (so ``--force`` may replace it): its
+    ``truth/truth.json`` is beside it, or its manifest carries the simulator's name
+    (``virtual-face-<preset>-seed<n>``; the committed sample session has no truth folder)."""
+    import tomllib
+
+    if (out / "truth" / "truth.json").is_file():
+        return True
+    try:
+        with open(out / "session" / "session.toml", "rb") as fh:
+            name = tomllib.load(fh).get("name", "")
+    except (OSError, ValueError):
+        return False
+    return isinstance(name, str) and name.startswith("virtual-face-")
+
+
 def run(args: argparse.Namespace) -> int:
     import dataclasses
     import sys
 
+    from mocap.paths import OutputPathError, check_output_path
     from mocap.simulate import preset, simulate
     from mocap.simulate.capture import CaptureNoise
     from mocap.simulate.effects import make_effect
     from mocap.simulate.session_writer import print_progress
 
     out = args.out_dir
+    try:
+        check_output_path(out, inputs=args.commands, option="OUT_DIR")
+        if (out / "session" / "session.toml").is_file() and not simulated(out):
+            # OUT_DIR/session is a real session, not one this command wrote: --force or not
+            raise OutputPathError(f"OUT_DIR {out}: contains the session folder {out / 'session'}, "
+                                  "which is not a simulated one; outputs never go into a raw "
+                                  "session: choose another folder")
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     if (out / "session").exists() and any((out / "session").iterdir()) and not args.force:
         print(f"error: {out / 'session'} exists and is not empty (use --force to overwrite)",
               file=sys.stderr)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 DESCRIPTION = """\
-Check a capture session directory against the input contract (FORMAT.md): the manifest
+Check a capture session directory against the input contract (docs/format.md): the manifest
 (session.toml), every take file and every commands file, row by row. Prints a one-screen
 summary (cameras, takes by kind with frames and rows, DUs, warnings) and exits 0; on the first
 contract violation prints "error: <file> <line/key>: <what was expected>" and exits 1.

@@ -30,41 +30,145 @@ MODEL_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REAC
 MAX_FRAMES = 65535
 
 
-def _labels(group: dict, base: str = "LABELS") -> list[str]:
-    out = list(group.get(base, {}).get("value", []))
+def _text(value, where: str, notes: list[str]) -> str:
+    """A C3D string parameter as text: bytes that are not UTF-8 (ezc3d hands them over as
+    surrogate escapes, which no writer accepts) are read as Latin-1, noted."""
+    text = str(value).strip()
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        text = text.encode("utf-8", "surrogateescape").decode("latin-1")
+        notes.append(f"{where}: {text!r} is not UTF-8; read as Latin-1")
+    return text
+
+
+def _labels(group: dict, where: str, notes: list[str], base: str = "LABELS") -> list[str]:
+    out = list(np.atleast_1d(group.get(base, {}).get("value", [])))
     k = 2
     while f"{base}{k}" in group:
-        out += list(group[f"{base}{k}"]["value"])
+        out += list(np.atleast_1d(group[f"{base}{k}"]["value"]))
         k += 1
-    return [str(v).strip() for v in out]
+    return [_text(v, f"{where}:{base} entry {i + 1}", notes) for i, v in enumerate(out)]
+
+
+def _first_number(group: dict, key: str, where: str) -> float:
+    """The first value of a numeric parameter, finite, or an ImportError_ naming it."""
+    try:
+        value = float(np.atleast_1d(group[key]["value"])[0])
+    except (KeyError, IndexError, TypeError, ValueError):
+        raise ImportError_(f"{where}:{key}: missing or not a number") from None
+    if not np.isfinite(value):
+        raise ImportError_(f"{where}:{key}: expected a finite number, got {value}")
+    return value
+
+
+# The C3D reader's budget in its child process: memory beyond what the caller already maps, and
+# time. A valid file needs a few times its size in memory and reads at tens of MB/s; a damaged
+# header can make ezc3d allocate without bound (12 GB seen) or crash.
+CHILD_MEMORY_BYTES = (1 << 30, 40)  # 1 GiB + 40 x the file's size
+CHILD_SECONDS = (60.0, 2.0)  # 60 s + 2 s per MB of file
 
 
 def read_c3d(path: str | os.PathLike) -> MarkerData:
-    import ezc3d
+    """Read a C3D file's labeled points (and analog channels) as :class:`MarkerData`.
+
+    ezc3d can crash the interpreter (a segmentation fault) or allocate without bound on a
+    corrupted file, so where the platform can fork the file is parsed in a child process with a
+    memory limit and a time limit (``CHILD_MEMORY_BYTES``, ``CHILD_SECONDS``): a crash, an
+    allocation failure or a timeout there becomes an ImportError_ naming the file instead of
+    killing or stalling the caller.
+    """
+    import multiprocessing as mp
 
     path = Path(path)
+    if "fork" not in mp.get_all_start_methods():  # pragma: no cover - Windows
+        return _read_c3d(path)
+    size = path.stat().st_size if path.is_file() else 0
+    limit_s = CHILD_SECONDS[0] + CHILD_SECONDS[1] * size / 1e6
+    ctx = mp.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_read_c3d_child,
+                        args=(path, send, CHILD_MEMORY_BYTES[0] + CHILD_MEMORY_BYTES[1] * size),
+                        daemon=True)
+    child.start()
+    send.close()
+    outcome, why = None, "crashed on it"
+    try:
+        if receive.poll(limit_s):
+            outcome = receive.recv()
+        else:
+            why = f"took longer than {limit_s:.0f} s"
+    except EOFError:  # the child died before answering
+        pass
+    finally:
+        receive.close()
+        if child.is_alive():
+            child.kill()
+        child.join()
+    if outcome is None:
+        raise ImportError_(f"{path}: not a readable C3D file (the C3D reader {why}, exit code "
+                           f"{child.exitcode}: the file is corrupted)")
+    ok, value = outcome
+    if not ok:
+        raise value
+    return value
+
+
+def _limit_memory(extra_bytes: int) -> None:
+    """Cap this process's address space at what it maps now plus ``extra_bytes`` (Linux)."""
+    import resource
+
+    try:
+        with open("/proc/self/statm") as fh:
+            mapped = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + int(extra_bytes), resource.RLIM_INFINITY))
+    except (OSError, ValueError):  # pragma: no cover - no /proc: no cap
+        pass
+
+
+def _read_c3d_child(path: Path, send, memory_bytes: int) -> None:
+    _limit_memory(memory_bytes)
+    try:
+        outcome = (True, _read_c3d(path))
+    except MemoryError:
+        outcome = (False, ImportError_(f"{path}: not a readable C3D file (reading it needs more "
+                                       "memory than its size can justify: the file is corrupted)"))
+    except BaseException as e:  # noqa: BLE001 - handed to the parent, which raises it
+        outcome = (False, e)
+    send.send(outcome)
+    send.close()
+
+
+def _read_c3d(path: Path) -> MarkerData:
+    import ezc3d
+
     where = str(path)
+    if not path.is_file():
+        raise ImportError_(f"{where}: file not found")
     try:
         c = ezc3d.c3d(str(path), extract_forceplat_data=False)
     except Exception as e:  # ezc3d raises RuntimeError/IOError with C++ messages
         raise ImportError_(f"{where}: not a readable C3D file ({e})") from None
     params = c["parameters"]
+    if "POINT" not in params:
+        raise ImportError_(f"{where}: no POINT parameter group (not a C3D of marker data)")
     point = params["POINT"]
     notes: list[str] = []
-    labels = _labels(point)
+    labels = _labels(point, f"{where} POINT", notes)
     pts = np.asarray(c["data"]["points"], float)  # (4, M, F)
     if len(labels) != pts.shape[1]:
         raise ImportError_(f"{where}: POINT:LABELS has {len(labels)} labels for {pts.shape[1]} points")
     model = set()
     for g in MODEL_OUTPUT_GROUPS:
         if g in point:
-            model |= {str(v).strip() for v in np.atleast_1d(point[g]["value"])}
+            model |= {_text(v, f"{where} POINT:{g}", notes) for v in np.atleast_1d(point[g]["value"])}
     keep = [i for i, lab in enumerate(labels) if lab not in model]
     if len(keep) < len(labels):
         notes.append(f"{where}: {len(labels) - len(keep)} POINT entries are model outputs "
                      f"({', '.join(g for g in MODEL_OUTPUT_GROUPS if g in point)}) and were left out")
     units = np.atleast_1d(point.get("UNITS", {}).get("value", ["mm"]))
-    scale = unit_scale(units[0] if len(units) else "mm", f"{where} POINT:UNITS")
+    scale = unit_scale(_text(units[0], f"{where} POINT:UNITS", notes) if len(units) else "mm",
+                       f"{where} POINT:UNITS")
     if scale != 1.0:
         notes.append(f"{where}: coordinates converted from {units[0]} to mm")
     res = np.asarray(c["data"]["meta_points"]["residuals"], float)[0]  # (M, F)
@@ -72,17 +176,22 @@ def read_c3d(path: str | os.PathLike) -> MarkerData:
     gap = (res.T[:, keep] < 0) | ~np.all(np.isfinite(X), axis=-1)
     X[gap] = np.nan
     names = unique_names([labels[i] for i in keep], where, notes)
-    fps = float(np.atleast_1d(point["RATE"]["value"])[0])
-    first = int(np.atleast_1d(params["TRIAL"]["ACTUAL_START_FIELD"]["value"])[0]) \
-        if "TRIAL" in params and "ACTUAL_START_FIELD" in params["TRIAL"] else 1
+    fps = _first_number(point, "RATE", f"{where} POINT")
+    if fps <= 0:
+        raise ImportError_(f"{where} POINT:RATE: expected a positive frame rate, got {fps:g}")
+    first = 1
+    if "TRIAL" in params and "ACTUAL_START_FIELD" in params["TRIAL"]:
+        first = int(_first_number(params["TRIAL"], "ACTUAL_START_FIELD", f"{where} TRIAL"))
     analogs = {}
     an = np.asarray(c["data"]["analogs"], float)
     if an.size and "ANALOG" in params:
-        alabels = unique_names(_labels(params["ANALOG"]), f"{where} ANALOG", notes)
-        rate = float(np.atleast_1d(params["ANALOG"]["RATE"]["value"])[0])
+        alabels = unique_names(_labels(params["ANALOG"], f"{where} ANALOG", notes), f"{where} ANALOG",
+                               notes)
+        rate = _first_number(params["ANALOG"], "RATE", f"{where} ANALOG")
         aunits = list(np.atleast_1d(params["ANALOG"].get("UNITS", {}).get("value", [])))
         for k, lab in enumerate(alabels[: an.shape[1]]):
-            analogs[lab] = (an[0, k], rate, str(aunits[k]).strip() if k < len(aunits) else "")
+            unit = _text(aunits[k], f"{where} ANALOG:UNITS", notes) if k < len(aunits) else ""
+            analogs[lab] = (an[0, k], rate, unit)
     return MarkerData(names, X, fps, first, analogs, notes, where)
 
 

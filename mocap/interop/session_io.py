@@ -11,6 +11,7 @@ missing. Nothing is overwritten: the output folder must not hold a session yet.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -21,15 +22,45 @@ import pandas as pd
 
 from mocap.atomic import write_csv, write_text
 from mocap.interop.c3d_file import read_c3d, write_c3d
-from mocap.interop.marker_data import ImportError_, MarkerData
+from mocap.interop.marker_data import ImportError_, MarkerData, unique_names
 from mocap.interop.vendor_text import sniff
 
 DU_CHANNEL = re.compile(r"^\s*du\s*0*(\d+)\s*$", re.IGNORECASE)
 
 
 def read_any(path: str | os.PathLike, fps: float | None = None) -> MarkerData:
+    """Read a vendor file by its type (:func:`sniff`); ImportError_ naming the file and the place
+    when it is malformed, or when it holds no frame or no marker."""
     reader = sniff(path)
-    return reader(path) if reader is read_c3d else reader(path, fps=fps)
+    data = reader(path) if reader is read_c3d else reader(path, fps=fps)
+    if data.X.shape[0] == 0 or data.X.shape[1] == 0:
+        raise ImportError_(f"{path}: {data.X.shape[0]} frames of {data.X.shape[1]} markers: "
+                           "nothing to import")
+    return data
+
+
+_CSV_UNSAFE = re.compile(r'[,"\r\n\x00-\x1f\x7f]')
+
+
+def _csv_safe(names: list[str], where: str, notes: list[str]) -> list[str]:
+    """Marker names a take file can hold (no comma, quote or control character), noted."""
+    out = []
+    for n in names:
+        safe = _CSV_UNSAFE.sub("_", n).strip() or "unnamed"
+        if safe != n:
+            notes.append(f"{where}: marker name {n!r} written as {safe!r} (a take file cannot hold "
+                         "commas, quotes or control characters in a name)")
+        out.append(safe)
+    return out
+
+
+def _toml_string(text: str) -> str:
+    """``text`` as a TOML basic string (quotes, backslashes and control characters escaped)."""
+    def escape(m: re.Match) -> str:
+        c = m.group(0)
+        return {'"': '\\"', "\\": "\\\\"}.get(c, f"\\u{ord(c):04X}")
+
+    return '"' + re.sub(r'["\\\x00-\x1f\x7f]', escape, text) + '"'
 
 
 def _command_rows(values: np.ndarray, fps: float, du: int, where: str) -> pd.DataFrame:
@@ -41,6 +72,32 @@ def _command_rows(values: np.ndarray, fps: float, du: int, where: str) -> pd.Dat
     v = np.round(v).astype(np.int64)
     change = np.r_[0, np.flatnonzero(np.diff(v) != 0) + 1]
     return pd.DataFrame({"time_s": np.round(change / fps, 9), "du": du, "command": v[change]})
+
+
+def _read_command_csv(path: Path) -> pd.DataFrame:
+    """A command file given with ``--commands`` (time_s,du,command), checked row by row: time_s
+    finite >= 0, du an integer, command an integer 0..255; errors name the file and line."""
+    try:
+        c = pd.read_csv(path, dtype=str, keep_default_na=False)
+    except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError) as e:
+        raise ImportError_(f"{path}: not a readable CSV file ({e})") from None
+    missing = [k for k in ("time_s", "du", "command") if k not in c.columns]
+    if missing:
+        raise ImportError_(f"{path} line 1: expected columns time_s,du,command; missing {missing}")
+    out = {}
+    for col, lo, hi, integer in (("time_s", 0.0, np.inf, False), ("du", -np.inf, np.inf, True),
+                                 ("command", 0, 255, True)):
+        values = pd.to_numeric(c[col].str.strip(), errors="coerce").to_numpy(float)
+        bad = ~np.isfinite(values) | (values < lo) | (values > hi)
+        if integer:
+            bad |= values != np.round(values)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ImportError_(f"{path} line {i + 2}: {col} {c[col].iloc[i]!r} is not "
+                               + ("an integer command 0..255" if col == "command" else
+                                  "an integer DU id" if col == "du" else "a time in s >= 0"))
+        out[col] = values.astype(np.int64) if integer else values
+    return pd.DataFrame(out)
 
 
 def _analog_commands(data: MarkerData) -> dict[int, np.ndarray]:
@@ -77,7 +134,13 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         raise ImportError_(f"{out}: already holds a session; choose a new folder")
     if commands is not None and len(files) != 1:
         raise ImportError_("--commands applies to a single imported file; import files one by one")
+    command_table = None if commands is None else _read_command_csv(Path(commands))
     datas = [read_any(f, fps) for f in files]
+    notes: list[str] = []
+    for k, (f, d) in enumerate(zip(files, datas)):
+        safe = _csv_safe(d.names, str(f), notes)
+        if safe != d.names:
+            datas[k] = dataclasses.replace(d, names=unique_names(safe, str(f), notes))
     rates = {d.fps for d in datas}
     if len(rates) > 1:
         raise ImportError_(f"frame rates differ between files ({sorted(rates)} Hz); a session has one")
@@ -85,7 +148,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
     names: list[str] = []
     for d in datas:
         names += [n for n in d.names if n not in names]
-    notes = [n for d in datas for n in d.notes]
+    notes = [n for d in datas for n in d.notes] + notes
     taken: set = set()
     takes, dus = [], set()
     for f, d in zip(files, datas):
@@ -106,11 +169,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         entry = {"name": name, "file": f"takes/{name}.csv", "source": str(f)}
         cmd = {}
         if commands is not None:
-            c = pd.read_csv(commands)
-            missing_cols = {"time_s", "du", "command"} - set(c.columns)
-            if missing_cols:
-                raise ImportError_(f"{commands}: expected columns time_s,du,command; missing "
-                                   f"{sorted(missing_cols)}")
+            c = command_table
             write_csv(c, out / "takes" / f"{name}_commands.csv")
             cmd = {int(du): None for du in c["du"].unique()}
         else:
@@ -127,7 +186,7 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
              "# - set each take's kind: rest (the face still), response (one DU's trapezoid: add du",
              "#   and trial), motion (anything else); a session needs a rest take to find markers",
              "# - name your DUs below and say which have position feedback",
-             'schema = "mocap-session/1"', f'name = "{out.name}"', f"fps = {float(rate)!r}", ""]
+             'schema = "mocap-session/1"', f"name = {_toml_string(out.name)}", f"fps = {float(rate)!r}", ""]
     for du in sorted(dus):
         lines += ["[[dus]]", f"id = {du}", f'name = "DU {du}"', "feedback = false", ""]
     for t in takes:

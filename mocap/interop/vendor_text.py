@@ -70,11 +70,18 @@ def _numeric_block(path: Path, rows: list[str], first_line: int, sep: str, width
                             dtype=float, skip_blank_lines=False, skipinitialspace=True,
                             engine="c")
         out = table.to_numpy(dtype=float)
-        if out.shape[0] == len(rows):
-            return out
-    except (ValueError, pd.errors.ParserError):
-        pass
-    return _numeric_block_slow(path, rows, first_line, sep, width)
+        if out.shape[0] != len(rows):
+            out = None
+    except (ValueError, OverflowError, pd.errors.ParserError):
+        out = None
+    if out is None:
+        out = _numeric_block_slow(path, rows, first_line, sep, width)
+    infinite = np.isinf(out)
+    if infinite.any():
+        i, j = (int(k[0]) for k in np.nonzero(infinite))
+        raise ImportError_(f"{path} line {first_line + i}, column {j + 1}: expected a finite "
+                           f"number, got {out[i, j]}")
+    return out
 
 
 def _numeric_block_slow(path: Path, rows: list[str], first_line: int, sep: str, width: int) -> np.ndarray:
@@ -93,13 +100,45 @@ def _numeric_block_slow(path: Path, rows: list[str], first_line: int, sep: str, 
     return out
 
 
-def _fill_missing_frames(path: Path, frames: np.ndarray, X: np.ndarray, notes: list[str]):
-    frames = frames.astype(np.int64)
+MAX_MISSING_FRAMES = 1_000_000  # a frame number further ahead is a damaged cell, not a gap
+
+
+def _rate(value: str | None, fps: float | None, where: str) -> float | None:
+    """A frame rate cell (Hz) as a positive finite float; ``fps`` (the caller's) when the cell is
+    absent or blank; an ImportError_ naming ``where`` when it is not a rate."""
+    if value is None or not str(value).strip():
+        return fps
+    try:
+        rate = float(value)
+    except ValueError:
+        raise ImportError_(f"{where}: frame rate {value!r} is not a number") from None
+    if not np.isfinite(rate) or rate <= 0:
+        raise ImportError_(f"{where}: expected a positive frame rate, got {value!r}")
+    return rate
+
+
+def _fill_missing_frames(path: Path, frames: np.ndarray, X: np.ndarray, notes: list[str],
+                         first_line: int):
+    """Check the frame column (integers, increasing) and insert missing frames as gaps.
+
+    ``first_line`` is the file line of the first data row (messages name lines)."""
     if frames.size == 0:
         raise ImportError_(f"{path}: no data rows")
+    bad = np.flatnonzero(~np.isfinite(frames) | (frames != np.round(frames)) | (np.abs(frames) > 2**53))
+    if bad.size:
+        i = int(bad[0])
+        raise ImportError_(f"{path} line {first_line + i}: frame number {frames[i]:g} is not an "
+                           "integer (a blank line or a damaged cell)")
+    frames = frames.astype(np.int64)
     if np.any(np.diff(frames) <= 0):
         k = int(np.flatnonzero(np.diff(frames) <= 0)[0])
-        raise ImportError_(f"{path}: frame numbers not increasing at frame {frames[k + 1]}")
+        raise ImportError_(f"{path} line {first_line + k + 1}: frame numbers not increasing "
+                           f"(frame {frames[k + 1]} after {frames[k]})")
+    jump = np.diff(frames)
+    if jump.size and int(jump.sum()) - jump.size > MAX_MISSING_FRAMES:
+        k = int(np.argmax(jump))
+        raise ImportError_(f"{path} line {first_line + k + 1}: frame numbers jump from {frames[k]} "
+                           f"to {frames[k + 1]} (more than {MAX_MISSING_FRAMES} missing frames)")
     full = np.arange(frames[0], frames[-1] + 1)
     if full.size != frames.size:
         notes.append(f"{path}: {full.size - frames.size} missing frame(s) between {frames[0]} and "
@@ -136,12 +175,15 @@ def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> Marker
                                            for c in r)), None)
     if types is None:
         raise ImportError_(f"{path}: no Type row (Marker, Rigid Body, ...) above line {axis_row + 1}")
+    if header.index(types) + 1 >= len(header):
+        raise ImportError_(f"{path} line {axis_row}: no Name row below the Type row (Motive CSV "
+                           "export)")
     names_row = header[header.index(types) + 1]
     measure = next((r for r in header if "Position" in r), None)
     axes = lines[axis_row].split(",")
     width = len(axes)
-    rate = meta.get("Export Frame Rate") or meta.get("Capture Frame Rate")
-    rate = float(rate) if rate else fps
+    key = "Export Frame Rate" if meta.get("Export Frame Rate") else "Capture Frame Rate"
+    rate = _rate(meta.get(key), fps, f"{path} line 1 '{key}'")
     if rate is None:
         raise ImportError_(f"{path}: no frame rate in the header: give it (--fps)")
     scale = unit_scale(meta.get("Length Units", "Meters"), f"{path} line 1 'Length Units'")
@@ -177,7 +219,7 @@ def read_motive_csv(path: str | os.PathLike, fps: float | None = None) -> Marker
                             for a in "XYZ"], axis=-1) for n in names], axis=1) * scale
     names = _drop_shared_prefix(names, path, "asset", notes)
     names = unique_names(names, str(path), notes)
-    first, X = _fill_missing_frames(path, data[:, 0], X, notes)
+    first, X = _fill_missing_frames(path, data[:, 0], X, notes, axis_row + 2)
     return MarkerData(names, X, rate, first, {}, notes, str(path))
 
 
@@ -191,7 +233,8 @@ def read_qtm_tsv(path: str | os.PathLike, fps: float | None = None) -> MarkerDat
         parts = lines[i].rstrip("\t").split("\t")
         meta[parts[0]] = parts[1:]
         i += 1
-    rate = float(meta["FREQUENCY"][0]) if "FREQUENCY" in meta else fps
+    freq_line = next((k + 1 for k in range(i) if lines[k].startswith("FREQUENCY")), 0)
+    rate = _rate((meta.get("FREQUENCY") or [""])[0], fps, f"{path} line {freq_line} 'FREQUENCY'")
     if "FILE_VERSION" not in meta and meta:
         notes.append(f"{path}: no FILE_VERSION (a QTM export older than 2.0.0)")
     if i < len(lines) and lines[i].startswith("Frame\t"):
@@ -227,20 +270,31 @@ def read_qtm_tsv(path: str | os.PathLike, fps: float | None = None) -> MarkerDat
         X = np.stack([data[:, cols] for cols in idx], axis=1)
         frames = data[:, cells.index("Frame")]
     else:
-        n_markers = int(meta.get("NO_OF_MARKERS", [0])[0]) if meta else 0
+        if not rows:
+            raise ImportError_(f"{path}: no data rows after the header (line {start})")
+        count = (meta.get("NO_OF_MARKERS") or ["0"])[0]
+        if not count.strip().isdigit():
+            raise ImportError_(f"{path}: NO_OF_MARKERS {count!r} is not a whole number")
+        n_markers = int(count)
         first_cells = rows[0].rstrip("\t").split("\t")
         width = len(first_cells)
         data = _numeric_block(path, rows, start + 1, "\t", width)
         n_markers = n_markers or width // 3
+        if 3 * n_markers > width or n_markers == 0:
+            raise ImportError_(f"{path} line {start + 1}: {width} columns, expected 3 per marker "
+                               f"for {n_markers or 'one or more'} markers")
         X = data[:, : 3 * n_markers].reshape(len(data), n_markers, 3)
         names = meta.get("MARKER_NAMES") or [f"M{k + 1:03d}" for k in range(n_markers)]
+        if len(names) != n_markers:
+            raise ImportError_(f"{path}: MARKER_NAMES lists {len(names)} names for {n_markers} "
+                               "markers")
         frames = np.arange(1, len(data) + 1)
     zero = np.all(X == 0.0, axis=-1)
     if zero.any():
         notes.append(f"{path}: {int(zero.sum())} samples of 0.000, 0.000, 0.000 read as gaps")
         X[zero] = np.nan
     names = unique_names(list(names), str(path), notes)
-    first, X = _fill_missing_frames(path, frames, X, notes)
+    first, X = _fill_missing_frames(path, frames, X, notes, start + 1)
     return MarkerData(names, X, float(rate), first, {}, notes, str(path))
 
 
@@ -252,13 +306,19 @@ def read_vicon_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerD
         top = next(i for i, ln in enumerate(lines) if ln.split(",")[0].strip() == "Trajectories")
     except StopIteration:
         raise ImportError_(f"{path}: no 'Trajectories' section (Vicon Nexus CSV export)") from None
-    rate = float(lines[top + 1].split(",")[0]) if lines[top + 1].split(",")[0].strip() else fps
+    if top + 5 > len(lines):
+        raise ImportError_(f"{path} line {len(lines)}: the Trajectories header ends early (expected "
+                           "title, rate, labels, 'Frame,Sub Frame,...' and units lines)")
+    rate = _rate(lines[top + 1].split(",")[0], fps, f"{path} line {top + 2}")
     labels = lines[top + 2].split(",")
     axes = lines[top + 3].split(",")
     if axes[:2] != ["Frame", "Sub Frame"]:
         raise ImportError_(f"{path} line {top + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'")
     units = lines[top + 4].split(",")
     width = len(axes)
+    if width < 5 or (width - 2) % 3:
+        raise ImportError_(f"{path} line {top + 4}: {width} columns, expected Frame, Sub Frame and "
+                           "X, Y, Z per marker")
     end = next((i for i in range(top + 5, len(lines)) if not lines[i].strip(", ")), len(lines))
     if end < len(lines):
         others = [ln.split(",")[0] for ln in lines[end:] if ln.split(",")[0].strip() in
@@ -274,7 +334,7 @@ def read_vicon_csv(path: str | os.PathLike, fps: float | None = None) -> MarkerD
     X = np.stack([data[:, j: j + 3] for j in cols], axis=1) * scale
     names = _drop_shared_prefix(names, path, "subject", notes)
     names = unique_names(names, str(path), notes)
-    first, X = _fill_missing_frames(path, data[:, 0], X, notes)
+    first, X = _fill_missing_frames(path, data[:, 0], X, notes, top + 6)
     if rate is None:
         raise ImportError_(f"{path} line {top + 2}: no frame rate: give it (--fps)")
     return MarkerData(names, X, rate, first, {}, notes, str(path))

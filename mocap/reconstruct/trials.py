@@ -13,7 +13,7 @@ marker was not reconstructed; the first axis is time.
 - Displacement: d_m(t) = v_m(t) - v_m(0), where v_m(0) is the mean position over the frames
   before the first command change (the take's rest lead-in), less noisy than frame 0 alone;
   ``delta`` = |d| / max_t |d| per (DU, marker), the maximum taken on the displacement smoothed
-  over ``NORMALISE_S`` (see ``mocap.analysis.displacement``).
+  over ``NORMALISE_S`` (see ``mocap.reconstruct.displacement``).
 - Noise floor: per marker and axis, the standard deviation over the rest take's frames; the
   session's noise floor is their mean (the paper: 0.025 mm).
 - Rejections (``rejections.csv``), each with a stable reason keyword, its value and threshold:
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mocap.analysis.displacement import normalized, normalized_along, peak_length, principal_direction
-from mocap.analysis.paper_indices import ScheduleTiming, timing_from_series
+from mocap.reconstruct.displacement import normalized, normalized_along, peak_length, principal_direction
+from mocap.schedules import ScheduleTiming, timing_from_series
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
 
@@ -56,7 +56,7 @@ class TrialAverage:
     command : (n_frames,) the DU's command; mean : (n_frames, M, 3) mm; spread_mm : (n_frames,
     M); n_trials : (n_frames, M) int; rest_mm : (M, 3) v(0); displacement_mm : (n_frames, M);
     delta : (n_frames, M) METHOD.md's |d| / max |d|; delta_along : the same along each marker's
-    principal direction (noise-unbiased, ``mocap.analysis.displacement.normalized_along``); trials :
+    principal direction (noise-unbiased, ``mocap.reconstruct.displacement.normalized_along``); trials :
     (n_trials, n_frames, M, 3) the aligned trials; takes: names.
     """
 
