@@ -76,8 +76,8 @@ def pair_pose(obs: WandObservations, cams: list[Camera], a: int, b: int, wand_le
         pa_, pb_ = cams[a].normalize(ua), cams[b].normalize(ub)
         na4 = np.concatenate([pa_, pa_]).reshape(-1, 2)
         nb4 = np.concatenate([pb_, pb_[:, ::-1]]).reshape(-1, 2)
-        E, _ = cv2.findEssentialMat(na4, nb4, np.eye(3), method=cv2.RANSAC, prob=0.99999,
-                                    threshold=4.0 / f, maxIters=20000)
+        E, _ = cv2.findEssentialMat(na4, nb4, np.eye(3), method=cv2.RANSAC, prob=0.9999,
+                                    threshold=4.0 / f, maxIters=5000)
         if E is None or E.shape != (3, 3):
             return None
         swap, _ = choose_pair_assignment(E[:3], pa_, pb_)
@@ -103,7 +103,8 @@ def pair_pose(obs: WandObservations, cams: list[Camera], a: int, b: int, wand_le
     return PairPose(a, b, R, t.ravel() * scale, int(n_in), int(common.size))
 
 
-def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float) -> CameraRig:
+def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float, *,
+                max_frames: int = 600) -> CameraRig:
     """Chain pairwise poses over the maximum spanning tree of the camera graph.
 
     Raises CalibrationError naming cameras that never saw the wand, or the disconnected groups.
@@ -119,7 +120,7 @@ def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float
     weight = np.zeros((n, n))
     for a in range(n):
         for b in range(a + 1, n):
-            p = pair_pose(obs, cams, a, b, wand_length_mm)
+            p = pair_pose(obs, cams, a, b, wand_length_mm, max_frames=max_frames)
             if p is not None:
                 poses[(a, b)] = p
                 weight[a, b] = weight[b, a] = p.inliers

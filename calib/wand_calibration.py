@@ -133,6 +133,68 @@ def _bundle_stages(obs: WandObservations, rig0: CameraRig, frames: np.ndarray,
     return result, problem, used, frames
 
 
+# the default intrinsics, and the simpler models tried in turn when the frames do not determine
+# them (a principal point or distortion term whose uncertainty exceeds ``DETERMINED``)
+LADDER = (IntrinsicsModel("free", "k1k2p1p2"), IntrinsicsModel("fixed", "k1k2"),
+          IntrinsicsModel("fixed", "k1"), IntrinsicsModel("fixed", "none"))
+DETERMINED = {"principal_point_sd_fraction": 0.02, "distortion_corner_sd_px": 1.0}
+
+
+def undetermined_intrinsics(rig: CameraRig, cov: np.ndarray | None,
+                            intrinsics: IntrinsicsModel) -> dict[str, list[str]]:
+    """Per camera, the estimated intrinsics the data leave loose: the principal point when its
+    standard deviation exceeds 2 % of the image's larger side; a distortion term when its
+    standard deviation moves the image corner by more than 1 px."""
+    out: dict[str, list[str]] = {}
+    if cov is None or not np.all(np.isfinite(cov)):
+        return {c.id: ["all (singular normal equations)"] for c in rig}
+    held = intrinsics.fixed_mask()
+    for i, c in enumerate(rig):
+        sd = np.sqrt(np.maximum(np.diag(cov)[i * 13:(i + 1) * 13], 0.0))
+        f = c.focal_px
+        r = np.hypot(c.width, c.height) / 2.0 / f  # normalised radius of the image corner
+        bad = []
+        if not held[7] and max(sd[7], sd[8]) > DETERMINED["principal_point_sd_fraction"] * max(
+                c.width, c.height):
+            bad.append(f"principal point sd {max(sd[7], sd[8]):.1f} px")
+        effect = {"k1": f * r**3 * sd[9], "k2": f * r**5 * sd[10], "p1": 3 * f * r**2 * sd[11],
+                  "p2": 3 * f * r**2 * sd[12]}
+        for k, name in enumerate(("k1", "k2", "p1", "p2")):
+            if not held[9 + k] and effect[name] > DETERMINED["distortion_corner_sd_px"]:
+                bad.append(f"{name} moves the corner by {effect[name]:.1f} px (1 sd)")
+        if bad:
+            out[c.id] = bad
+    return out
+
+
+def _reset_held(c: Camera, intrinsics: IntrinsicsModel) -> Camera:
+    """The camera with the intrinsics a model holds reset: principal point to the image centre,
+    distortion terms to 0."""
+    held = intrinsics.fixed_mask()
+    K = c.K.copy()
+    if held[7]:
+        K[0, 2], K[1, 2] = (c.width - 1) / 2.0, (c.height - 1) / 2.0
+    dist = np.where(np.r_[held[9:], True], 0.0, c.dist)
+    return Camera(id=c.id, width=c.width, height=c.height, K=K, dist=dist, R=c.R, t=c.t)
+
+
+FOCAL_SEARCH = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # x the image's larger side
+
+
+def _coarse_start(obs: WandObservations, cams, wand_length: float, offsets_rel: np.ndarray,
+                  coarse: np.ndarray, max_frames: int):
+    """Initial rig, ends ordered (two-marker wands), and a robust adjustment of poses and focal
+    lengths: (rig, ordered sightings, median reprojection error px of the worst marker)."""
+    rig0 = initial_rig(obs, list(cams), wand_length, max_frames=max(max_frames, 200))
+    if not obs.ordered:
+        obs, _ = label_ends(obs, rig0)
+    frames = select_frames(obs, max_frames=max_frames, per_camera=max(max_frames // 30, 8))
+    result, _, _, _ = _bundle_stages(obs, rig0, frames, offsets_rel, coarse, lambda m: None,
+                                     stages=(("soft_l1", 4.0),))
+    score = float(np.median(np.linalg.norm(result.residuals, axis=-1).max(axis=1)))
+    return rig_from_vectors(result.cameras, rig0), obs, score
+
+
 def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 50):
     """Raise CalibrationError when the sightings cannot support the asked intrinsics.
 
@@ -158,7 +220,7 @@ def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_fra
 
 def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=None,
               ground_markers_mm=None, max_frames: int = 3600,
-              intrinsics: IntrinsicsModel = IntrinsicsModel(),
+              intrinsics: IntrinsicsModel | None = None, focal_search: bool = False,
               progress: Callable[[str], None] | None = None) -> CalibrationResult:
     """Calibrate from wand sightings (and optionally the ground take).
 
@@ -171,7 +233,13 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     ground_blobs, ground_markers_mm : the ground take's blobs and the square's coordinates; when
         given, the result is in the square's world frame; otherwise in the first camera's
         (OpenCV axes, origin at its centre), the scale set by the wand.
-    intrinsics : which intrinsics to estimate (:class:`mocap.calib.bundle.IntrinsicsModel`).
+    intrinsics : which intrinsics to estimate (:class:`mocap.calib.bundle.IntrinsicsModel`);
+        a model the frames do not determine is a CalibrationError. None (default): the richest
+        of ``LADDER`` the frames determine (principal point free and k1 k2 p1 p2 first).
+    focal_search : the cameras' focal lengths are unknown (no ``focal_px``): start from each of
+        ``FOCAL_SEARCH`` x the image's larger side and keep the start whose coarse adjustment
+        (on a few hundred frames) fits best. Long lenses (near-affine cameras) need it: their
+        pairwise essential matrices barely depend on the focal length.
     """
     say = progress or (lambda msg: None)
     timings = {}
@@ -180,30 +248,52 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     offsets_rel = offsets - 0.5 * (offsets[0] + offsets[-1])
     wand_length = float(offsets[-1] - offsets[0])
     cams = list(cameras_init)
+    adaptive = intrinsics is None
+    intrinsics = LADDER[0] if intrinsics is None else intrinsics
     fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
     # held distortion terms start (and stay) at 0
     cams = [Camera(id=c.id, width=c.width, height=c.height, K=c.K,
                    dist=np.where(np.r_[intrinsics.fixed_mask()[9:], True], 0.0, c.dist))
             for c in cams]
-    rig0 = initial_rig(obs, cams, wand_length)
     check_support(obs, intrinsics)
+    # coarse first: poses and focal lengths only (principal point at its start, no distortion),
+    # robustly; a full model from a rough start can wander off (a strongly distorted lens)
+    coarse = np.tile(IntrinsicsModel("fixed", "none").fixed_mask(), (len(cams), 1)) | fixed_params
+    unordered = None if obs.ordered else obs
+    if focal_search:
+        best = None
+        f0 = max(max(c.width, c.height) for c in cams)
+        for factor in FOCAL_SEARCH:
+            trial = [Camera(id=c.id, width=c.width, height=c.height, dist=c.dist,
+                            K=[[factor * f0, 0, c.K[0, 2]], [0, factor * f0, c.K[1, 2]], [0, 0, 1]])
+                     for c in cams]
+            try:
+                rig_c, obs_c, score = _coarse_start(unordered or obs, trial, wand_length,
+                                                    offsets_rel, coarse, 240)
+            except CalibrationError:
+                continue
+            say(f"focal length search: start {factor * f0:.0f} px -> coarse fit median "
+                f"{score:.2f} px")
+            if best is None or score < best[0]:
+                best = (score, rig_c)
+        if best is None:
+            raise CalibrationError("no focal length from 0.5 to 32 image widths gives a consistent "
+                                   "initial rig; give focal_px in session.toml")
+        rig0 = best[1]
+        if unordered is not None:
+            obs, _ = label_ends(unordered, rig0)
+    else:
+        rig0, obs, _ = _coarse_start(unordered or obs, cams, wand_length, offsets_rel, coarse,
+                                     max_frames)
     timings["initialise"] = time.perf_counter() - t0
-    say(f"initial poses from essential matrices ({timings['initialise']:.1f} s)")
-    unordered = None
-    if not obs.ordered:
-        unordered = obs
-        obs, kept = label_ends(unordered, rig0)
-        say(f"two-marker wand: ends ordered across cameras in {int(kept.sum())} of "
+    say(f"initial poses from essential matrices, coarse adjustment "
+        f"({timings['initialise']:.1f} s)")
+    if unordered is not None:
+        say(f"two-marker wand: ends ordered across cameras in {len(obs)} of "
             f"{len(unordered)} sightings (epipolar votes of the initial rig)")
 
     t1 = time.perf_counter()
     frames = select_frames(obs, max_frames=max_frames)
-    # coarse first: poses and focal lengths only (principal point at its start, no distortion),
-    # robustly; a full model from a rough start can wander off (a strongly distorted lens)
-    coarse = np.tile(IntrinsicsModel("fixed", "none").fixed_mask(), (len(cams), 1)) | fixed_params
-    result, _, _, _ = _bundle_stages(obs, rig0, frames, offsets_rel, coarse, say,
-                                     stages=(("soft_l1", 4.0),))
-    rig0 = rig_from_vectors(result.cameras, rig0)
     result, problem, used, frames = _bundle_stages(obs, rig0, frames, offsets_rel, fixed_params, say)
     rig = rig_from_vectors(result.cameras, rig0)
     if unordered is not None:  # order the ends again with the calibrated cameras, and refine
@@ -215,6 +305,25 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
             obs, rig, frames, offsets_rel, fixed_params, say,
             stages=(("linear", 1.0), ("linear", 1.0)))  # from adjusted cameras: no robust stage
         rig = rig_from_vectors(result.cameras, rig)
+    loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics)
+    while loose and adaptive and intrinsics != LADDER[-1]:
+        simpler = LADDER[LADDER.index(intrinsics) + 1] if intrinsics in LADDER else LADDER[-1]
+        say(f"intrinsics {intrinsics.principal_point} principal point, {intrinsics.distortion} "
+            f"distortion not determined by these frames ({loose}); trying "
+            f"{simpler.principal_point}, {simpler.distortion}")
+        intrinsics = simpler
+        fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
+        rig = CameraRig(tuple(_reset_held(c, intrinsics) for c in rig))
+        result, problem, used, frames = _bundle_stages(obs, rig, frames, offsets_rel,
+                                                       fixed_params, say)
+        rig = rig_from_vectors(result.cameras, rig)
+        loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics)
+    if loose:
+        raise CalibrationError(
+            f"the wand frames do not determine the intrinsics asked (principal point "
+            f"{intrinsics.principal_point}, distortion {intrinsics.distortion}): {loose}. Estimate "
+            "fewer (--principal-point fixed, --distortion k1 or none) or record more wand frames "
+            "reaching the image corners")
     timings["bundle_adjustment"] = time.perf_counter() - t1
     wand_pts = problem.wand_points(result.frames)
     ground = None
@@ -245,7 +354,7 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
 
 
 def calibrate_session(session, *, max_frames: int = 3600,
-                      intrinsics: IntrinsicsModel = IntrinsicsModel(),
+                      intrinsics: IntrinsicsModel | None = None,
                       progress: Callable[[str], None] | None = None) -> CalibrationResult:
     """Calibrate a loaded :class:`mocap.session.Session` from its wand and ground takes."""
     wand_takes = session.takes_of_kind("wand")
@@ -256,6 +365,7 @@ def calibrate_session(session, *, max_frames: int = 3600,
     say = progress or (lambda msg: None)
     offsets = session.wand.marker_offsets_mm
     ids = [c.id for c in session.cameras]
+    focal_search = any(not c.focal_px for c in session.cameras)
     cams = [initial_intrinsics(c.id, c.width, c.height, c.focal_px) for c in session.cameras]
     blobs = session.read_take(wand_takes[0].name)
     obs = find_wand(blobs, ids, offsets)
@@ -268,4 +378,4 @@ def calibrate_session(session, *, max_frames: int = 3600,
         ground_markers = session.ground.markers_mm
     return calibrate(obs, cams, offsets, ground_blobs=ground_blobs,
                      ground_markers_mm=ground_markers, max_frames=max_frames,
-                     intrinsics=intrinsics, progress=progress)
+                     intrinsics=intrinsics, focal_search=focal_search, progress=progress)
