@@ -141,27 +141,41 @@ DETERMINED = {"principal_point_sd_fraction": 0.02, "distortion_corner_sd_px": 1.
 
 
 def undetermined_intrinsics(rig: CameraRig, cov: np.ndarray | None,
-                            intrinsics: IntrinsicsModel) -> dict[str, list[str]]:
+                            intrinsics: IntrinsicsModel,
+                            reach_px: np.ndarray | None = None) -> dict[str, list[str]]:
     """Per camera, the estimated intrinsics the data leave loose: the principal point when its
-    standard deviation exceeds 2 % of the image's larger side; a distortion term when its
-    standard deviation moves the image corner by more than 1 px."""
+    standard deviation exceeds 2 % of the image's larger side; the distortion terms when their
+    joint uncertainty (their full covariance, correlations included) moves an image point at the
+    edge of the data (``reach_px`` (n_cameras,): the 99th percentile distance of the camera's
+    sightings from its principal point, px; default the image corner) by more than 1 px (1 sd,
+    per axis), in any of 8 directions."""
     out: dict[str, list[str]] = {}
     if cov is None or not np.all(np.isfinite(cov)):
         return {c.id: ["all (singular normal equations)"] for c in rig}
     held = intrinsics.fixed_mask()
+    free_d = np.flatnonzero(~held[9:13])
     for i, c in enumerate(rig):
-        sd = np.sqrt(np.maximum(np.diag(cov)[i * 13:(i + 1) * 13], 0.0))
-        f = c.focal_px
-        r = np.hypot(c.width, c.height) / 2.0 / f  # normalised radius of the image corner
+        block = cov[i * 13:(i + 1) * 13, i * 13:(i + 1) * 13]
+        sd = np.sqrt(np.maximum(np.diag(block), 0.0))
         bad = []
         if not held[7] and max(sd[7], sd[8]) > DETERMINED["principal_point_sd_fraction"] * max(
                 c.width, c.height):
             bad.append(f"principal point sd {max(sd[7], sd[8]):.1f} px")
-        effect = {"k1": f * r**3 * sd[9], "k2": f * r**5 * sd[10], "p1": 3 * f * r**2 * sd[11],
-                  "p2": 3 * f * r**2 * sd[12]}
-        for k, name in enumerate(("k1", "k2", "p1", "p2")):
-            if not held[9 + k] and effect[name] > DETERMINED["distortion_corner_sd_px"]:
-                bad.append(f"{name} moves the corner by {effect[name]:.1f} px (1 sd)")
+        if free_d.size:
+            S = block[9 + free_d][:, 9 + free_d]
+            worst = 0.0
+            reach = (np.hypot(c.width, c.height) / 2.0 if reach_px is None
+                     else float(reach_px[i]))
+            for ang in np.arange(8) * np.pi / 4:
+                x = reach * np.cos(ang) / c.K[0, 0]
+                y = reach * np.sin(ang) / c.K[1, 1]
+                r2 = x * x + y * y
+                J = c.focal_px * np.array([[x * r2, x * r2 * r2, 2 * x * y, r2 + 2 * x * x],
+                                           [y * r2, y * r2 * r2, r2 + 2 * y * y, 2 * x * y]])
+                J = J[:, free_d]
+                worst = max(worst, float(np.sqrt(np.trace(J @ S @ J.T) / 2.0)))
+            if worst > DETERMINED["distortion_corner_sd_px"]:
+                bad.append(f"distortion moves an image corner by {worst:.2f} px (1 sd)")
         if bad:
             out[c.id] = bad
     return out
@@ -305,7 +319,10 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
             obs, rig, frames, offsets_rel, fixed_params, say,
             stages=(("linear", 1.0), ("linear", 1.0)))  # from adjusted cameras: no robust stage
         rig = rig_from_vectors(result.cameras, rig)
-    loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics)
+    reach = np.array([np.percentile(np.linalg.norm(obs.uv[obs.camera == i] - c.K[:2, 2], axis=-1),
+                                    99) if np.any(obs.camera == i) else 0.0
+                      for i, c in enumerate(rig)])
+    loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics, reach)
     while loose and adaptive and intrinsics != LADDER[-1]:
         simpler = LADDER[LADDER.index(intrinsics) + 1] if intrinsics in LADDER else LADDER[-1]
         say(f"intrinsics {intrinsics.principal_point} principal point, {intrinsics.distortion} "
@@ -317,7 +334,7 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         result, problem, used, frames = _bundle_stages(obs, rig, frames, offsets_rel,
                                                        fixed_params, say)
         rig = rig_from_vectors(result.cameras, rig)
-        loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics)
+        loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics, reach)
     if loose:
         raise CalibrationError(
             f"the wand frames do not determine the intrinsics asked (principal point "

@@ -408,7 +408,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
 
     partial = RunResult(session=session, out_dir=out, calibration=calibration,
                         reconstruction=recon, averages=averages, rejections=rejections)
-    audit = write_audit(partial, out)
+    audit = write_audit(partial, out, min_cameras=settings.reconstruction.min_cameras)
     timings["audit_s"] = time.perf_counter() - t
     stages.append("audit")
 

@@ -343,6 +343,8 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         write_calibration(truth / "cameras.toml", rig, header={"source": "facemocap simulator truth"})
     markers_rng = np.random.default_rng([cfg.seed, 7])
     approx = face.rest_mm + markers_rng.normal(0.0, 1.0, face.rest_mm.shape)
+    if not cfg.ground and not cfg.labeled:  # FORMAT.md: the world frame is the first camera's
+        approx = rig[0].world_to_camera(approx)
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)
     write_parquet(face_table(face), truth / "face.parquet")
