@@ -102,7 +102,7 @@ def main(argv=None) -> int:
             "seconds": round(secs, 1),
             "reprojection_rms_px": q["reprojection_rms_px"],
             "intrinsics": q["intrinsics"],
-            "focal_px": {c.id: round(c.focal_px, 1) for c in full.rig},
+            "focal_px": {c.id: round(float(c.focal_px), 1) for c in full.rig},
             "wand_length_spread": float(np.std(lengths, ddof=1) / np.mean(lengths)),
             "wand_frames": int(lengths.size),
             "sightings_found": q["sightings_found"],
