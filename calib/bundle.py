@@ -6,8 +6,9 @@ Unknowns:
   ``f`` (px; square pixels and zero skew, as every machine-vision sensor has), the principal
   point ``cx, cy`` (px), and distortion ``k1, k2, p1, p2``. ``k3`` stays 0: over a face-sized
   volume seen near the image centre it is not separable from ``k1, k2`` and only adds variance.
-  One camera's pose is held fixed (the gauge: the world frame is set afterwards from the ground
-  square);
+  Which intrinsics are estimated is an :class:`IntrinsicsModel` (``fixed_params``: the others are
+  held). One camera's pose is held fixed (the gauge, the first camera's in the calibration: the
+  world frame is then its own, or the ground square's set afterwards);
 - per wand frame: the wand's centre (3, mm) and its direction, as two coordinates in the tangent
   plane of an initial direction ``u0`` (``u = normalise(u0 + a e1 + b e2)``, no singularity). The
   wand's geometry is exact by construction: marker k sits at ``centre + (o_k - o_mid) u``, so the

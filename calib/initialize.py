@@ -28,6 +28,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 
 from mocap.calib.camera import Camera, CameraRig
 from mocap.calib.wand import WandObservations
+from mocap.calib.wand_ends import choose_pair_assignment
 
 
 class CalibrationError(RuntimeError):
@@ -71,8 +72,6 @@ def pair_pose(obs: WandObservations, cams: list[Camera], a: int, b: int, wand_le
     f = 0.5 * (cams[a].focal_px + cams[b].focal_px)
     cv2.setRNGSeed(seed)
     if not obs.ordered:  # ends alike: both assignments are putative matches
-        from mocap.calib.wand_ends import choose_pair_assignment
-
         pa_, pb_ = cams[a].normalize(ua), cams[b].normalize(ub)
         na4 = np.concatenate([pa_, pa_]).reshape(-1, 2)
         nb4 = np.concatenate([pb_, pb_[:, ::-1]]).reshape(-1, 2)

@@ -1,6 +1,22 @@
 """Wand calibration of a camera rig: wand finding, initialisation, bundle adjustment, world frame
-and the quality report. ``calibrate_session`` runs it all on a session's ``wand`` and ``ground``
-takes.
+and the quality report. ``calibrate_session`` runs it all on a session's ``wand`` and (optional)
+``ground`` takes.
+
+Order of work:
+
+1. initial poses from pairwise essential matrices (:mod:`mocap.calib.initialize`), in the first
+   camera's frame; for a two-marker wand the ends are then ordered across cameras
+   (:mod:`mocap.calib.wand_ends`). Cameras without a focal length (``focal_search``) are tried
+   from each of ``FOCAL_SEARCH`` x the image's larger side, the start whose coarse adjustment on
+   a few hundred frames fits best kept;
+2. a coarse robust adjustment of poses and focal lengths only (principal point at its start, no
+   distortion): a full model from a rough start can wander off;
+3. the full bundle adjustment with outlier trimming (below); a two-marker wand's ends are
+   ordered again with the adjusted cameras and the adjustment refined;
+4. intrinsics the frames do not determine (``undetermined_intrinsics``, from the adjustment's own
+   covariance) are dropped along ``LADDER`` by default, or refused when asked for explicitly;
+5. the world frame: the ground square's, or the first camera's (OpenCV axes, origin at its
+   centre, the wand's scale) when the session has none; the report says which.
 
 Frame subsampling: consecutive frames at 120 fps see nearly the same wand pose, so the bundle
 adjustment uses at most ``max_frames`` frames, each seen by at least two cameras: first up to
@@ -209,16 +225,17 @@ def _coarse_start(obs: WandObservations, cams, wand_length: float, offsets_rel: 
     return rig_from_vectors(result.cameras, rig0), obs, score
 
 
-def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 50):
+def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 30):
     """Raise CalibrationError when the sightings cannot support the asked intrinsics.
 
     Each camera needs its wand seen together with another camera in ``min_frames`` frames, and
-    at least 10 sightings per intrinsic parameter estimated (a hand-digitised recording of 50
-    frames supports focal length, principal point and k1 k2, not a full model on few frames).
+    at least 6 such frames per intrinsic parameter estimated (a hand-digitised recording of 50
+    frames, of which each camera shares 30 to 45, supports a focal length and k1 k2 with the
+    principal point at the image centre, not a full model).
     """
     frames, n_views = np.unique(obs.frame, return_counts=True)
     multi = frames[n_views >= 2]
-    need = max(min_frames, 10 * intrinsics.n_free)
+    need = max(min_frames, 6 * intrinsics.n_free)
     short = {}
     for c, cid in enumerate(obs.camera_ids):
         n = int(np.isin(obs.frame[obs.camera == c], multi).sum())
@@ -269,6 +286,17 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     cams = [Camera(id=c.id, width=c.width, height=c.height, K=c.K,
                    dist=np.where(np.r_[intrinsics.fixed_mask()[9:], True], 0.0, c.dist))
             for c in cams]
+    if adaptive:  # start from the richest model the frame count supports
+        for model in LADDER:
+            try:
+                check_support(obs, model)
+            except CalibrationError:
+                if model == LADDER[-1]:
+                    raise
+                continue
+            intrinsics = model
+            break
+        fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
     check_support(obs, intrinsics)
     # coarse first: poses and focal lengths only (principal point at its start, no distortion),
     # robustly; a full model from a rough start can wander off (a strongly distorted lens)
