@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_CSV = Path("/work/shared/realdata/pyopenlpt_wand_4cam_blobs.csv")
+DEFAULT_CSV = HERE.parents[1] / "shared" / "realdata" / "pyopenlpt_wand_4cam_blobs.csv"
 
 
 def tool_agreement(result, csv: Path) -> dict:

@@ -460,8 +460,10 @@ def _camera_covariance(problem: WandProblem, Jc, Jf, r, gauge) -> np.ndarray:
     dof = max(r.size - n_free, 1)
     sigma2 = float(np.sum(r**2)) / dof
     cov = np.zeros((C * N_CAM, C * N_CAM))
+    Sf = S[np.ix_(free, free)]
+    d = np.sqrt(np.maximum(np.diag(Sf), 1e-300))  # Jacobi scaling: parameters span 1e-6 to 1e5
     try:
-        cov[np.ix_(free, free)] = np.linalg.inv(S[np.ix_(free, free)]) * sigma2
+        cov[np.ix_(free, free)] = np.linalg.inv(Sf / np.outer(d, d)) / np.outer(d, d) * sigma2
     except np.linalg.LinAlgError:
         cov[:] = np.nan
     return cov

@@ -310,8 +310,8 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
                             K=[[factor * f0, 0, c.K[0, 2]], [0, factor * f0, c.K[1, 2]], [0, 0, 1]])
                      for c in cams]
             try:
-                rig_c, obs_c, score = _coarse_start(unordered or obs, trial, wand_length,
-                                                    offsets_rel, coarse, 240)
+                rig_c, _, score = _coarse_start(obs if unordered is None else unordered, trial,
+                                                wand_length, offsets_rel, coarse, 240)
             except CalibrationError:
                 continue
             say(f"focal length search: start {factor * f0:.0f} px -> coarse fit median "
@@ -325,8 +325,8 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         if unordered is not None:
             obs, _ = label_ends(unordered, rig0)
     else:
-        rig0, obs, _ = _coarse_start(unordered or obs, cams, wand_length, offsets_rel, coarse,
-                                     max_frames)
+        rig0, obs, _ = _coarse_start(obs if unordered is None else unordered, cams, wand_length,
+                                     offsets_rel, coarse, max_frames)
     timings["initialise"] = time.perf_counter() - t0
     say(f"initial poses from essential matrices, coarse adjustment "
         f"({timings['initialise']:.1f} s)")
