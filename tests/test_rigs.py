@@ -235,7 +235,7 @@ def test_real_two_marker_recording_calibrates_from_nothing(tmp_path):
     d = pd.read_csv(REAL)
     small = d[d.Status == "Filtered_Small"].set_index(["Frame", "Camera"])[["X", "Y"]]
     large = d[d.Status == "Filtered_Large"].set_index(["Frame", "Camera"])[["X", "Y"]]
-    obs = r.wand.select(r.used)
+    obs = r.wand  # every sighting chosen and ordered (not only the adjustment's subsample)
     same, end0_small = [], {}
     for c, f, uv in zip(obs.camera, obs.frame, obs.uv):
         if (f, c) not in small.index:
