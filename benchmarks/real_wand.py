@@ -37,6 +37,18 @@ HERE = Path(__file__).resolve().parent
 DEFAULT_CSV = HERE.parents[1] / "shared" / "realdata" / "pyopenlpt_wand_4cam_blobs.csv"
 
 
+NOTES = """\
+Reading: chi2 is the pose difference of the two halves against the sum of their covariances
+(6 degrees of freedom: about 6 when they agree as predicted, 16.8 at the 99 % point). Values of
+tens mean the halves differ 3 to 4 times more than the bundle adjustment's covariance says: that
+covariance comes from the reprojection error alone, treating every blob centroid as independent,
+which these 35 to 50 px balls (partly occluded, centroid errors correlated from frame to frame)
+are not; the far, long-lens cameras (focal about 27,000 px) make each camera's distance the
+worst-determined quantity (centre shift / distance). The agreement with the tool compares every
+sighting the final bundle adjustment kept (chosen and ordered by the calibration) with the tool's Filtered_Small / Filtered_Large rows
+(same blobs, and the same end in every camera of a frame)."""
+
+
 def tool_agreement(result, csv: Path) -> dict:
     """Compare the sightings the calibration kept with the tool's Filtered_* choice."""
     d = pd.read_csv(csv)
@@ -135,6 +147,7 @@ def main(argv=None) -> int:
     for cid, v in out["halves"]["pose_agreement"].items():
         lines.append(f"| {cid} | {v['chi2_6dof']:.1f} | {v['rotation_deg']:.4f} | {v['rotation_sd_deg']:.4f} | "
                      f"{v['centre_shift_relative']:.4f} |")
+    lines += ["", NOTES]
     (HERE / "real_wand.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
