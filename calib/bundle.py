@@ -6,8 +6,9 @@ Unknowns:
   ``f`` (px; square pixels and zero skew, as every machine-vision sensor has), the principal
   point ``cx, cy`` (px), and distortion ``k1, k2, p1, p2``. ``k3`` stays 0: over a face-sized
   volume seen near the image centre it is not separable from ``k1, k2`` and only adds variance.
-  One camera's pose is held fixed (the gauge: the world frame is set afterwards from the ground
-  square);
+  Which intrinsics are estimated is an :class:`IntrinsicsModel` (``fixed_params``: the others are
+  held). One camera's pose is held fixed (the gauge, the first camera's in the calibration: the
+  world frame is then its own, or the ground square's set afterwards);
 - per wand frame: the wand's centre (3, mm) and its direction, as two coordinates in the tangent
   plane of an initial direction ``u0`` (``u = normalise(u0 + a e1 + b e2)``, no singularity). The
   wand's geometry is exact by construction: marker k sits at ``centre + (o_k - o_mid) u``, so the
@@ -42,6 +43,43 @@ from mocap.calib.camera import Camera, CameraRig, rodrigues_from_rotation, rotat
 N_CAM = 13  # rvec 3, t 3, f, cx, cy, k1, k2, p1, p2
 N_FRAME = 5  # centre 3, tangent 2
 INTRINSIC_NAMES = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
+DISTORTION_MODELS = {"none": (), "k1": ("k1",), "k1k2": ("k1", "k2"),
+                     "k1k2p1p2": ("k1", "k2", "p1", "p2")}
+
+
+@dataclass(frozen=True)
+class IntrinsicsModel:
+    """Which intrinsics the bundle adjustment estimates, as the field's tools offer them.
+
+    principal_point : "free" (estimated) or "fixed" (held where it starts: the image centre).
+    distortion : "none", "k1", "k1k2" or "k1k2p1p2" (Brown-Conrady terms estimated; the others
+        held at 0). The focal length is always estimated.
+    """
+
+    principal_point: str = "free"
+    distortion: str = "k1k2p1p2"
+
+    def __post_init__(self) -> None:
+        if self.principal_point not in ("free", "fixed"):
+            raise ValueError(f"principal point: expected 'free' or 'fixed', got {self.principal_point!r}")
+        if self.distortion not in DISTORTION_MODELS:
+            raise ValueError(f"distortion: expected one of {sorted(DISTORTION_MODELS)}, "
+                             f"got {self.distortion!r}")
+
+    @property
+    def n_free(self) -> int:
+        """Free intrinsics per camera."""
+        return 1 + (2 if self.principal_point == "free" else 0) + len(DISTORTION_MODELS[self.distortion])
+
+    def fixed_mask(self) -> np.ndarray:
+        """(13,) bool: the camera parameters this model holds (pose entries are free)."""
+        m = np.zeros(N_CAM, bool)
+        if self.principal_point == "fixed":
+            m[7:9] = True
+        free = DISTORTION_MODELS[self.distortion]
+        for k, name in enumerate(("k1", "k2", "p1", "p2")):
+            m[9 + k] = name not in free
+        return m
 
 
 def _tangent_basis(u0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +113,8 @@ class WandProblem:
     offsets : (n_w,) marker offsets relative to the wand's middle, mm.
     u0, e1, e2 : (n_frames, 3) initial direction and its tangent basis per frame.
     fixed_camera : the camera whose pose is held (gauge).
+    fixed_params : (n_cameras, 13) bool, camera parameters held at their start values (the
+        intrinsics an :class:`IntrinsicsModel` does not estimate); None: all free.
     """
 
     obs_cam: np.ndarray
@@ -86,6 +126,15 @@ class WandProblem:
     e2: np.ndarray
     n_cameras: int
     fixed_camera: int
+    fixed_params: np.ndarray | None = None
+
+    def held(self) -> np.ndarray:
+        """(n_cameras * 13,) bool: camera parameters not estimated (gauge and fixed intrinsics)."""
+        m = np.zeros((self.n_cameras, N_CAM), bool)
+        if self.fixed_params is not None:
+            m |= self.fixed_params
+        m[self.fixed_camera, :6] = True
+        return m.ravel()
 
     @property
     def n_frames(self) -> int:
@@ -97,7 +146,7 @@ class WandProblem:
 
     def free_mask(self) -> np.ndarray:
         mask = np.ones(self.n_cameras * N_CAM + self.n_frames * N_FRAME, bool)
-        mask[self.fixed_camera * N_CAM: self.fixed_camera * N_CAM + 6] = False
+        mask[: self.n_cameras * N_CAM] = ~self.held()
         return mask
 
     def split(self, x_full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -236,13 +285,19 @@ def _rvec_jacobian(rvec: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BundleResult:
-    cameras: np.ndarray  # (n_cameras, 13)
-    frames: np.ndarray  # (n_frames, 5)
-    residuals: np.ndarray  # (n_obs, n_w, 2) px
+    """cameras (n_cameras, 13); frames (n_frames, 5); residuals (n_obs, n_w, 2) px;
+    camera_covariance (n_cameras * 13, n_cameras * 13): the cameras' parameters' covariance
+    (Gauss-Newton, frames marginalised, scaled by the residuals' variance; zero for held
+    parameters), or None."""
+
+    cameras: np.ndarray
+    frames: np.ndarray
+    residuals: np.ndarray
     cost: float
     nfev: int
     success: bool
     message: str
+    camera_covariance: np.ndarray | None = None
 
 
 def solve(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linear",
@@ -296,8 +351,7 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
     """
     C, F = problem.n_cameras, problem.n_frames
     oc, of = problem.obs_cam, problem.obs_frame
-    gauge = np.zeros(C * N_CAM, bool)
-    gauge[problem.fixed_camera * N_CAM: problem.fixed_camera * N_CAM + 6] = True
+    gauge = problem.held()
     x = x0_full.copy()
 
     def cost_of(r):
@@ -333,8 +387,8 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
             Ud = U + lam * np.einsum("cii->ci", U)[..., None] * np.eye(N_CAM)
             Vd = V + lam * np.einsum("fii->fi", V)[..., None] * np.eye(N_FRAME)
             Vinv = np.linalg.inv(Vd + 1e-12 * np.eye(N_FRAME))
-            Y = np.einsum("fcik,fkl->fcil", Wfull, Vinv)
-            S = -np.einsum("fcik,fdjk->cidj", Y, Wfull).reshape(C * N_CAM, C * N_CAM)
+            Y = Wfull @ Vinv[:, None]  # (F, C, 13, 5)
+            S = -_schur_product(Y, Wfull)
             S[np.diag_indices(C * N_CAM)] += 0.0
             for c in range(C):
                 sl = slice(c * N_CAM, (c + 1) * N_CAM)
@@ -372,7 +426,47 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
             success = True
             break
     cams, frames = problem.split(x)
-    return BundleResult(cams.copy(), frames.copy(), r, cost, nfev, success, message)
+    cov = _camera_covariance(problem, Jc, Jf, r, gauge)
+    return BundleResult(cams.copy(), frames.copy(), r, cost, nfev, success, message, cov)
+
+
+def _schur_product(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """sum_f Y[f] W[f]^T over frames, as one matrix product: Y, W (F, C, 13, 5) ->
+    (C * 13, C * 13)."""
+    F, C = Y.shape[:2]
+    Yr = Y.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
+    Wr = W.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
+    return Yr @ Wr.T
+
+
+def _camera_covariance(problem: WandProblem, Jc, Jf, r, gauge) -> np.ndarray:
+    """Covariance of the cameras' free parameters at the solution (see BundleResult)."""
+    C, F = problem.n_cameras, problem.n_frames
+    oc, of = problem.obs_cam, problem.obs_frame
+    U = np.zeros((C, N_CAM, N_CAM))
+    np.add.at(U, oc, np.einsum("owai,owaj->oij", Jc, Jc))
+    V = np.zeros((F, N_FRAME, N_FRAME))
+    np.add.at(V, of, np.einsum("owai,owaj->oij", Jf, Jf))
+    Wfull = np.zeros((F, C, N_CAM, N_FRAME))
+    Wfull[of, oc] = np.einsum("owai,owaj->oij", Jc, Jf)
+    Vinv = np.linalg.pinv(V)
+    Y = Wfull @ Vinv[:, None]
+    S = -_schur_product(Y, Wfull)
+    for c in range(C):
+        sl = slice(c * N_CAM, (c + 1) * N_CAM)
+        S[sl, sl] += U[c]
+    free = ~gauge
+    n_free = int(free.sum()) + F * N_FRAME
+    dof = max(r.size - n_free, 1)
+    sigma2 = float(np.sum(r**2)) / dof
+    cov = np.zeros((C * N_CAM, C * N_CAM))
+    Sf = S[np.ix_(free, free)]
+    d = np.sqrt(np.maximum(np.diag(Sf), 1e-300))  # Jacobi scaling: parameters span 1e-6 to 1e5
+    try:
+        cov[np.ix_(free, free)] = np.linalg.inv(Sf / np.outer(d, d)) / np.outer(d, d) * sigma2
+    except np.linalg.LinAlgError:
+        cov[:] = np.nan
+    return cov
 
 
 def rig_from_vectors(cams: np.ndarray, like: CameraRig) -> CameraRig:

@@ -7,8 +7,14 @@
    relative pose from the essential matrix of the wand-marker correspondences (OpenCV's
    five-point solver in RANSAC, then ``recoverPose``), and a metric scale from the wand's length
    (median over the triangulated frames).
+   Two-marker wands (ends alike, ``obs.ordered`` False): each shared frame offers both end
+   assignments (four putative matches, half of them wrong); RANSAC finds the essential matrix
+   the right half agrees on, and each frame keeps the assignment with the smaller epipolar
+   error (:func:`mocap.calib.wand_ends.choose_pair_assignment`).
 3. The camera graph (edges weighted by RANSAC inliers) is reduced to its maximum spanning tree,
-   rooted at the camera with the most sightings, and relative poses are chained along it.
+   rooted at the camera with the most sightings, and relative poses are chained along it. The
+   rig is returned in the first camera's frame (OpenCV axes, origin at its centre): the gauge
+   of the bundle adjustment, and the world frame of a session without a ground square.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 
 from mocap.calib.camera import Camera, CameraRig
 from mocap.calib.wand import WandObservations
+from mocap.calib.wand_ends import choose_pair_assignment
 
 
 class CalibrationError(RuntimeError):
@@ -62,10 +69,20 @@ def pair_pose(obs: WandObservations, cams: list[Camera], a: int, b: int, wand_le
     if common.size > max_frames:
         keep = np.linspace(0, common.size - 1, max_frames).astype(int)
         ua, ub = ua[keep], ub[keep]
-    na = cams[a].normalize(ua).reshape(-1, 2)
-    nb = cams[b].normalize(ub).reshape(-1, 2)
     f = 0.5 * (cams[a].focal_px + cams[b].focal_px)
     cv2.setRNGSeed(seed)
+    if not obs.ordered:  # ends alike: both assignments are putative matches
+        pa_, pb_ = cams[a].normalize(ua), cams[b].normalize(ub)
+        na4 = np.concatenate([pa_, pa_]).reshape(-1, 2)
+        nb4 = np.concatenate([pb_, pb_[:, ::-1]]).reshape(-1, 2)
+        E, _ = cv2.findEssentialMat(na4, nb4, np.eye(3), method=cv2.RANSAC, prob=0.9999,
+                                    threshold=4.0 / f, maxIters=5000)
+        if E is None or E.shape != (3, 3):
+            return None
+        swap, _ = choose_pair_assignment(E[:3], pa_, pb_)
+        ub = np.where(swap[:, None, None], ub[:, ::-1], ub)
+    na = cams[a].normalize(ua).reshape(-1, 2)
+    nb = cams[b].normalize(ub).reshape(-1, 2)
     E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.9999,
                                    threshold=4.0 / f, maxIters=5000)
     if E is None or E.shape != (3, 3):
@@ -85,7 +102,8 @@ def pair_pose(obs: WandObservations, cams: list[Camera], a: int, b: int, wand_le
     return PairPose(a, b, R, t.ravel() * scale, int(n_in), int(common.size))
 
 
-def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float) -> CameraRig:
+def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float, *,
+                max_frames: int = 600) -> CameraRig:
     """Chain pairwise poses over the maximum spanning tree of the camera graph.
 
     Raises CalibrationError naming cameras that never saw the wand, or the disconnected groups.
@@ -101,7 +119,7 @@ def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float
     weight = np.zeros((n, n))
     for a in range(n):
         for b in range(a + 1, n):
-            p = pair_pose(obs, cams, a, b, wand_length_mm)
+            p = pair_pose(obs, cams, a, b, wand_length_mm, max_frames=max_frames)
             if p is not None:
                 poses[(a, b)] = p
                 weight[a, b] = weight[b, a] = p.inliers
@@ -129,9 +147,12 @@ def initial_rig(obs: WandObservations, cams: list[Camera], wand_length_mm: float
         R[node] = R_rel @ R[parent]
         t[node] = R_rel @ t[parent] + t_rel
     out = []
+    # re-express in the first camera's frame: X0 = R[0] X + t[0]
+    R0, t0 = R[0], t[0]
     for i, c in enumerate(cams):
-        Ri = R[i]
+        Ri = R[i] @ R0.T
         u, _, vt = np.linalg.svd(Ri)
+        Ri = u @ vt
         out.append(Camera(id=c.id, width=c.width, height=c.height, K=c.K, dist=c.dist,
-                          R=u @ vt, t=t[i]))
+                          R=Ri, t=t[i] - Ri @ t0))
     return CameraRig(tuple(out))

@@ -81,3 +81,33 @@ def quality_report(rig: CameraRig, obs: WandObservations, used: np.ndarray,
         q["ground_fit_rms_mm"] = float(ground.rms_mm)
         q["ground_scale_agreement"] = float(ground.scale)
     return q
+
+
+def pose_agreement(a, b) -> dict:
+    """How far two calibrations of one rig (e.g. from two halves of a wand take) disagree on
+    every camera's pose relative to the first camera, against their own uncertainty.
+
+    ``a``, ``b``: :class:`mocap.calib.wand_calibration.CalibrationResult` in the first camera's
+    frame (no ground square), with ``camera_covariance``. Per camera ``j > 0``: the difference
+    of its 6 pose parameters (rotation vector, rad; translation, the wand's units) and
+    ``chi2 = d^T (S_a + S_b)^-1 d`` with 6 degrees of freedom (about 6 when the two agree as
+    their covariances predict; the 99 % point is 16.8); plus the rotation angle between the two
+    (deg) and the centre distance relative to the camera's distance from the first camera.
+    """
+    from mocap.calib.bundle import N_CAM, camera_vector
+
+    out = {}
+    for j in range(1, len(a.rig)):
+        va, vb = camera_vector(a.rig[j])[:6], camera_vector(b.rig[j])[:6]
+        sl = slice(j * N_CAM, j * N_CAM + 6)
+        S = a.camera_covariance[sl, sl] + b.camera_covariance[sl, sl]
+        d = va - vb
+        chi2 = float(d @ np.linalg.solve(S, d))
+        Ra, Rb = a.rig[j].R, b.rig[j].R
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(Ra @ Rb.T) - 1) / 2, -1, 1))))
+        ca, cb = a.rig[j].center, b.rig[j].center
+        out[a.rig[j].id] = {"chi2_6dof": chi2, "rotation_deg": ang,
+                            "centre_shift_relative": float(np.linalg.norm(ca - cb)
+                                                           / np.linalg.norm(ca)),
+                            "rotation_sd_deg": float(np.degrees(np.sqrt(np.trace(S[:3, :3]))))}
+    return out

@@ -1,6 +1,11 @@
 """Finding a calibration wand among unlabeled 2D blobs.
 
-A wand carries ``n >= 3`` collinear markers at known offsets along it, with all gaps distinct,
+Two-marker wands (a T-wand, an easyWand/Argus rod): the ends look alike, so a camera and frame
+with exactly two blobs is a sighting whose end order is unknown (``ordered=False``); groups with
+more blobs (reflections) are left out here. :mod:`mocap.calib.wand_ends` tells the ends apart
+across cameras from the epipolar geometry.
+
+A wand with ``n >= 3`` carries collinear markers at known offsets along it, with all gaps distinct,
 so its two ends can be told apart. In each camera and frame, among the blobs (with ghosts and
 dropouts), we look for ``n`` blobs that are collinear (interior blobs within ``line_tol_px`` of
 the line through the outer two, plus 2 % of the wand's image length for lens distortion) and whose
@@ -32,18 +37,22 @@ class WandObservations:
     camera : (n_obs,) int camera index of each sighting.
     frame : (n_obs,) int frame of each sighting.
     uv : (n_obs, n_wand_markers, 2) px, the wand's markers in offset order (raw, distorted).
+    ordered : False when the ends of each sighting are in an unknown order (a two-marker wand
+        before :func:`mocap.calib.wand_ends.label_ends`); the order is then the blobs'.
     """
 
     camera_ids: tuple[str, ...]
     camera: np.ndarray
     frame: np.ndarray
     uv: np.ndarray
+    ordered: bool = True
 
     def __len__(self) -> int:
         return int(self.camera.size)
 
     def select(self, mask: np.ndarray) -> "WandObservations":
-        return WandObservations(self.camera_ids, self.camera[mask], self.frame[mask], self.uv[mask])
+        return WandObservations(self.camera_ids, self.camera[mask], self.frame[mask], self.uv[mask],
+                                self.ordered)
 
     def frames_per_camera(self) -> dict[str, int]:
         counts = np.bincount(self.camera, minlength=len(self.camera_ids))
@@ -96,7 +105,8 @@ def find_wand(blobs: pd.DataFrame, camera_ids, offsets_mm, *, line_tol_px: float
     ----------
     blobs : DataFrame with frame, camera, x, y (a ``wand`` take).
     camera_ids : the rig's camera ids (order defines camera indices).
-    offsets_mm : (n_wand_markers,) marker offsets along the wand, mm (all gaps distinct).
+    offsets_mm : (n_wand_markers,) marker offsets along the wand, mm (with 3 or more, all gaps
+        distinct; with 2, the sightings come back with ``ordered=False``).
 
     Returns
     -------
@@ -120,6 +130,14 @@ def find_wand(blobs: pd.DataFrame, camera_ids, offsets_mm, *, line_tol_px: float
     key, xy = key[order], xy[order]
     uniq, start, count = np.unique(key, return_index=True, return_counts=True)
     out_cam, out_frame, out_uv = [], [], []
+    if n_w == 2:  # ends alike: exactly two blobs, far enough apart to be a wand
+        groups = np.flatnonzero(count == 2)
+        pts = xy[start[groups][:, None] + np.arange(2)[None, :]]
+        ok = np.linalg.norm(pts[:, 1] - pts[:, 0], axis=1) > 10.0
+        k = uniq[groups[ok]]
+        o = np.lexsort((k % n_frames, k // n_frames))
+        return WandObservations(camera_ids, (k // n_frames)[o], (k % n_frames)[o], pts[ok][o],
+                                ordered=False)
     for size in range(n_w, max_blobs + 1):
         groups = np.flatnonzero(count == size)
         if groups.size == 0:

@@ -1,6 +1,22 @@
 """Wand calibration of a camera rig: wand finding, initialisation, bundle adjustment, world frame
-and the quality report. ``calibrate_session`` runs it all on a session's ``wand`` and ``ground``
-takes.
+and the quality report. ``calibrate_session`` runs it all on a session's ``wand`` and (optional)
+``ground`` takes.
+
+Order of work:
+
+1. initial poses from pairwise essential matrices (:mod:`mocap.calib.initialize`), in the first
+   camera's frame; for a two-marker wand the ends are then ordered across cameras
+   (:mod:`mocap.calib.wand_ends`). Cameras without a focal length (``focal_search``) are tried
+   from each of ``FOCAL_SEARCH`` x the image's larger side, the start whose coarse adjustment on
+   a few hundred frames fits best kept;
+2. a coarse robust adjustment of poses and focal lengths only (principal point at its start, no
+   distortion): a full model from a rough start can wander off;
+3. the full bundle adjustment with outlier trimming (below); a two-marker wand's ends are
+   ordered again with the adjusted cameras and the adjustment refined;
+4. intrinsics the frames do not determine (``undetermined_intrinsics``, from the adjustment's own
+   covariance) are dropped along ``LADDER`` by default, or refused when asked for explicitly;
+5. the world frame: the ground square's, or the first camera's (OpenCV axes, origin at its
+   centre, the wand's scale) when the session has none; the report says which.
 
 Frame subsampling: consecutive frames at 120 fps see nearly the same wand pose, so the bundle
 adjustment uses at most ``max_frames`` frames, each seen by at least two cameras: first up to
@@ -23,20 +39,23 @@ from typing import Callable
 import numpy as np
 
 from mocap.calib.bundle import (
+    IntrinsicsModel,
     WandProblem,
     _tangent_basis,
     camera_vector,
     rig_from_vectors,
     solve_schur,
 )
-from mocap.calib.camera import CameraRig
+from mocap.calib.camera import Camera, CameraRig
 from mocap.calib.initialize import CalibrationError, initial_intrinsics, initial_rig
 from mocap.calib.quality import quality_report
 from mocap.calib.triangulation import triangulate
 from mocap.calib.wand import WandObservations, find_wand
+from mocap.calib.wand_ends import label_ends
 from mocap.calib.world_frame import GroundFit, fit_ground, transform_rig
 
-__all__ = ["CalibrationError", "CalibrationResult", "calibrate", "calibrate_session"]
+__all__ = ["CalibrationError", "CalibrationResult", "IntrinsicsModel", "calibrate",
+           "calibrate_session"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +71,9 @@ class CalibrationResult:
     timings_s: dict = field(default_factory=dict)
     wand_frames: np.ndarray | None = None  # (n_ba_frames,) frames of the bundle adjustment
     wand_points_mm: np.ndarray | None = None  # (n_ba_frames, n_w, 3) fitted wand, world frame
+    # (n_cameras * 13, n_cameras * 13): the bundle adjustment's parameters (rvec, t mm, f, cx,
+    # cy, k1, k2, p1, p2 per camera) in the first camera's frame, before any ground transform
+    camera_covariance: np.ndarray | None = None
 
 
 def select_frames(obs: WandObservations, max_frames: int = 3600, per_camera: int = 120) -> np.ndarray:
@@ -88,18 +110,167 @@ def _initial_frames(rig: CameraRig, obs: WandObservations, frames: np.ndarray,
     return centre, u
 
 
+def _bundle_stages(obs: WandObservations, rig0: CameraRig, frames: np.ndarray,
+                   offsets_rel: np.ndarray, fixed_params: np.ndarray, say,
+                   stages=(("soft_l1", 2.0), ("linear", 1.0), ("linear", 1.0))):
+    """The robust bundle adjustment of the module docstring, from ``rig0``: (result, problem,
+    used, frames)."""
+    centre, u0 = _initial_frames(rig0, obs, frames, offsets_rel)
+    good_frames = np.all(np.isfinite(centre), axis=1) & np.all(np.isfinite(u0), axis=1)
+    frames, centre, u0 = frames[good_frames], centre[good_frames], u0[good_frames]
+    in_ba = np.isin(obs.frame, frames)
+    e1, e2 = _tangent_basis(u0)
+    n_cams = len(rig0)
+    x0 = np.concatenate([np.concatenate([camera_vector(c) for c in rig0]),
+                         np.column_stack([centre, np.zeros((frames.size, 2))]).ravel()])
+    used = in_ba.copy()
+    result = problem = None
+    for stage, (loss, f_scale) in enumerate(stages):
+        idx = np.flatnonzero(used)
+        problem = WandProblem(
+            obs_cam=obs.camera[idx], obs_frame=np.searchsorted(frames, obs.frame[idx]),
+            obs_uv=obs.uv[idx], offsets=offsets_rel, u0=u0, e1=e1, e2=e2,
+            n_cameras=n_cams, fixed_camera=0, fixed_params=fixed_params)
+        result = solve_schur(problem, x0, loss=loss, f_scale=f_scale)
+        x0 = np.concatenate([result.cameras.ravel(), result.frames.ravel()])
+        norms = np.linalg.norm(result.residuals, axis=-1)  # (n_sightings, n_w)
+        worst = norms.max(axis=1)
+        # robust sigma per camera (a noisier camera keeps its wider spread)
+        sigma = np.array([np.median(norms[problem.obs_cam == c]) / 1.1774
+                          if np.any(problem.obs_cam == c) else 0.0 for c in range(n_cams)])
+        threshold = np.maximum(6.0 * sigma, 0.6)[problem.obs_cam]
+        bad = worst > threshold
+        say(f"bundle adjustment stage {stage + 1} ({loss}): {idx.size} sightings, "
+            f"rms {np.sqrt(np.mean(result.residuals**2)):.3f} px, {int(bad.sum())} over "
+            f"6 sigma of their camera ({result.nfev} evaluations)")
+        if stage == len(stages) - 1 or (stage >= 1 and not bad.any()):
+            break  # the residuals below belong to exactly the sightings in ``used``
+        used[idx[bad]] = False
+    return result, problem, used, frames
+
+
+# the default intrinsics, and the simpler models tried in turn when the frames do not determine
+# them (a principal point or distortion term whose uncertainty exceeds ``DETERMINED``)
+LADDER = (IntrinsicsModel("free", "k1k2p1p2"), IntrinsicsModel("fixed", "k1k2"),
+          IntrinsicsModel("fixed", "k1"), IntrinsicsModel("fixed", "none"))
+DETERMINED = {"principal_point_sd_fraction": 0.02, "distortion_corner_sd_px": 1.0}
+
+
+def undetermined_intrinsics(rig: CameraRig, cov: np.ndarray | None,
+                            intrinsics: IntrinsicsModel,
+                            reach_px: np.ndarray | None = None) -> dict[str, list[str]]:
+    """Per camera, the estimated intrinsics the data leave loose: the principal point when its
+    standard deviation exceeds 2 % of the image's larger side; the distortion terms when their
+    joint uncertainty (their full covariance, correlations included) moves an image point at the
+    edge of the data (``reach_px`` (n_cameras,): the 99th percentile distance of the camera's
+    sightings from its principal point, px; default the image corner) by more than 1 px (1 sd,
+    per axis), in any of 8 directions."""
+    out: dict[str, list[str]] = {}
+    if cov is None or not np.all(np.isfinite(cov)):
+        return {c.id: ["all (singular normal equations)"] for c in rig}
+    held = intrinsics.fixed_mask()
+    free_d = np.flatnonzero(~held[9:13])
+    for i, c in enumerate(rig):
+        block = cov[i * 13:(i + 1) * 13, i * 13:(i + 1) * 13]
+        sd = np.sqrt(np.maximum(np.diag(block), 0.0))
+        bad = []
+        if not held[7] and max(sd[7], sd[8]) > DETERMINED["principal_point_sd_fraction"] * max(
+                c.width, c.height):
+            bad.append(f"principal point sd {max(sd[7], sd[8]):.1f} px")
+        if free_d.size:
+            S = block[9 + free_d][:, 9 + free_d]
+            worst = 0.0
+            reach = (np.hypot(c.width, c.height) / 2.0 if reach_px is None
+                     else float(reach_px[i]))
+            for ang in np.arange(8) * np.pi / 4:
+                x = reach * np.cos(ang) / c.K[0, 0]
+                y = reach * np.sin(ang) / c.K[1, 1]
+                r2 = x * x + y * y
+                J = c.focal_px * np.array([[x * r2, x * r2 * r2, 2 * x * y, r2 + 2 * x * x],
+                                           [y * r2, y * r2 * r2, r2 + 2 * y * y, 2 * x * y]])
+                J = J[:, free_d]
+                worst = max(worst, float(np.sqrt(np.trace(J @ S @ J.T) / 2.0)))
+            if worst > DETERMINED["distortion_corner_sd_px"]:
+                bad.append(f"distortion moves an image corner by {worst:.2f} px (1 sd)")
+        if bad:
+            out[c.id] = bad
+    return out
+
+
+def _reset_held(c: Camera, intrinsics: IntrinsicsModel) -> Camera:
+    """The camera with the intrinsics a model holds reset: principal point to the image centre,
+    distortion terms to 0."""
+    held = intrinsics.fixed_mask()
+    K = c.K.copy()
+    if held[7]:
+        K[0, 2], K[1, 2] = (c.width - 1) / 2.0, (c.height - 1) / 2.0
+    dist = np.where(np.r_[held[9:], True], 0.0, c.dist)
+    return Camera(id=c.id, width=c.width, height=c.height, K=K, dist=dist, R=c.R, t=c.t)
+
+
+FOCAL_SEARCH = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)  # x the image's larger side
+
+
+def _coarse_start(obs: WandObservations, cams, wand_length: float, offsets_rel: np.ndarray,
+                  coarse: np.ndarray, max_frames: int):
+    """Initial rig, ends ordered (two-marker wands), and a robust adjustment of poses and focal
+    lengths: (rig, ordered sightings, median reprojection error px of the worst marker)."""
+    rig0 = initial_rig(obs, list(cams), wand_length, max_frames=max(max_frames, 200))
+    if not obs.ordered:
+        obs, _ = label_ends(obs, rig0)
+    frames = select_frames(obs, max_frames=max_frames, per_camera=max(max_frames // 30, 8))
+    result, _, _, _ = _bundle_stages(obs, rig0, frames, offsets_rel, coarse, lambda m: None,
+                                     stages=(("soft_l1", 4.0),))
+    score = float(np.median(np.linalg.norm(result.residuals, axis=-1).max(axis=1)))
+    return rig_from_vectors(result.cameras, rig0), obs, score
+
+
+def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 30):
+    """Raise CalibrationError when the sightings cannot support the asked intrinsics.
+
+    Each camera needs its wand seen together with another camera in ``min_frames`` frames, and
+    at least 6 such frames per intrinsic parameter estimated (a hand-digitised recording of 50
+    frames, of which each camera shares 30 to 45, supports a focal length and k1 k2 with the
+    principal point at the image centre, not a full model).
+    """
+    frames, n_views = np.unique(obs.frame, return_counts=True)
+    multi = frames[n_views >= 2]
+    need = max(min_frames, 6 * intrinsics.n_free)
+    short = {}
+    for c, cid in enumerate(obs.camera_ids):
+        n = int(np.isin(obs.frame[obs.camera == c], multi).sum())
+        if n < need:
+            short[cid] = n
+    if short:
+        raise CalibrationError(
+            f"wand seen together with another camera in too few frames for the intrinsics asked "
+            f"(principal point {intrinsics.principal_point}, distortion {intrinsics.distortion}: "
+            f"{intrinsics.n_free} per camera, {need} frames needed): {short}. Record more wand "
+            "frames, or estimate fewer intrinsics (--principal-point fixed, --distortion k1 or none)")
+
+
 def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=None,
               ground_markers_mm=None, max_frames: int = 3600,
+              intrinsics: IntrinsicsModel | None = None, focal_search: bool = False,
               progress: Callable[[str], None] | None = None) -> CalibrationResult:
-    """Calibrate from labeled wand sightings (and optionally the ground take).
+    """Calibrate from wand sightings (and optionally the ground take).
 
     Parameters
     ----------
-    obs : wand sightings from :func:`mocap.calib.wand.find_wand`.
+    obs : wand sightings from :func:`mocap.calib.wand.find_wand` (two-marker wands: unordered
+        ends, ordered here by :func:`mocap.calib.wand_ends.label_ends`).
     cameras_init : list of :class:`mocap.calib.camera.Camera` with initial intrinsics (poses ignored).
     offsets_mm : (n_w,) the wand's marker offsets, mm.
     ground_blobs, ground_markers_mm : the ground take's blobs and the square's coordinates; when
-        given, the result is in the square's world frame.
+        given, the result is in the square's world frame; otherwise in the first camera's
+        (OpenCV axes, origin at its centre), the scale set by the wand.
+    intrinsics : which intrinsics to estimate (:class:`mocap.calib.bundle.IntrinsicsModel`);
+        a model the frames do not determine is a CalibrationError. None (default): the richest
+        of ``LADDER`` the frames determine (principal point free and k1 k2 p1 p2 first).
+    focal_search : the cameras' focal lengths are unknown (no ``focal_px``): start from each of
+        ``FOCAL_SEARCH`` x the image's larger side and keep the start whose coarse adjustment
+        (on a few hundred frames) fits best. Long lenses (near-affine cameras) need it: their
+        pairwise essential matrices barely depend on the focal length.
     """
     say = progress or (lambda msg: None)
     timings = {}
@@ -108,46 +279,97 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     offsets_rel = offsets - 0.5 * (offsets[0] + offsets[-1])
     wand_length = float(offsets[-1] - offsets[0])
     cams = list(cameras_init)
-    rig0 = initial_rig(obs, cams, wand_length)
+    adaptive = intrinsics is None
+    intrinsics = LADDER[0] if intrinsics is None else intrinsics
+    fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
+    # held distortion terms start (and stay) at 0
+    cams = [Camera(id=c.id, width=c.width, height=c.height, K=c.K,
+                   dist=np.where(np.r_[intrinsics.fixed_mask()[9:], True], 0.0, c.dist))
+            for c in cams]
+    if adaptive:  # start from the richest model the frame count supports
+        for model in LADDER:
+            try:
+                check_support(obs, model)
+            except CalibrationError:
+                if model == LADDER[-1]:
+                    raise
+                continue
+            intrinsics = model
+            break
+        fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
+    check_support(obs, intrinsics)
+    # coarse first: poses and focal lengths only (principal point at its start, no distortion),
+    # robustly; a full model from a rough start can wander off (a strongly distorted lens)
+    coarse = np.tile(IntrinsicsModel("fixed", "none").fixed_mask(), (len(cams), 1)) | fixed_params
+    unordered = None if obs.ordered else obs
+    if focal_search:
+        best = None
+        f0 = max(max(c.width, c.height) for c in cams)
+        for factor in FOCAL_SEARCH:
+            trial = [Camera(id=c.id, width=c.width, height=c.height, dist=c.dist,
+                            K=[[factor * f0, 0, c.K[0, 2]], [0, factor * f0, c.K[1, 2]], [0, 0, 1]])
+                     for c in cams]
+            try:
+                rig_c, _, score = _coarse_start(obs if unordered is None else unordered, trial,
+                                                wand_length, offsets_rel, coarse, 240)
+            except CalibrationError:
+                continue
+            say(f"focal length search: start {factor * f0:.0f} px -> coarse fit median "
+                f"{score:.2f} px")
+            if best is None or score < best[0]:
+                best = (score, rig_c)
+        if best is None:
+            raise CalibrationError("no focal length from 0.5 to 32 image widths gives a consistent "
+                                   "initial rig; give focal_px in session.toml")
+        rig0 = best[1]
+        if unordered is not None:
+            obs, _ = label_ends(unordered, rig0)
+    else:
+        rig0, obs, _ = _coarse_start(obs if unordered is None else unordered, cams, wand_length,
+                                     offsets_rel, coarse, max_frames)
     timings["initialise"] = time.perf_counter() - t0
-    say(f"initial poses from essential matrices ({timings['initialise']:.1f} s)")
+    say(f"initial poses from essential matrices, coarse adjustment "
+        f"({timings['initialise']:.1f} s)")
+    if unordered is not None:
+        say(f"two-marker wand: ends ordered across cameras in {len(obs)} of "
+            f"{len(unordered)} sightings (epipolar votes of the initial rig)")
 
-    frames = select_frames(obs, max_frames=max_frames)
-    centre, u0 = _initial_frames(rig0, obs, frames, offsets_rel)
-    good_frames = np.all(np.isfinite(centre), axis=1) & np.all(np.isfinite(u0), axis=1)
-    frames, centre, u0 = frames[good_frames], centre[good_frames], u0[good_frames]
-    in_ba = np.isin(obs.frame, frames)
-    e1, e2 = _tangent_basis(u0)
-    fixed = int(np.argmax(np.bincount(obs.camera, minlength=len(cams))))
-    x0 = np.concatenate([np.concatenate([camera_vector(c) for c in rig0]),
-                         np.column_stack([centre, np.zeros((frames.size, 2))]).ravel()])
-    used = in_ba.copy()
-    result = None
     t1 = time.perf_counter()
-    stages = [("soft_l1", 2.0), ("linear", 1.0), ("linear", 1.0)]
-    for stage, (loss, f_scale) in enumerate(stages):
-        idx = np.flatnonzero(used)
-        problem = WandProblem(
-            obs_cam=obs.camera[idx], obs_frame=np.searchsorted(frames, obs.frame[idx]),
-            obs_uv=obs.uv[idx], offsets=offsets_rel, u0=u0, e1=e1, e2=e2,
-            n_cameras=len(cams), fixed_camera=fixed)
-        result = solve_schur(problem, x0, loss=loss, f_scale=f_scale)
-        x0 = np.concatenate([result.cameras.ravel(), result.frames.ravel()])
-        norms = np.linalg.norm(result.residuals, axis=-1)  # (n_sightings, n_w)
-        worst = norms.max(axis=1)
-        # robust sigma per camera (a noisier camera keeps its wider spread)
-        sigma = np.array([np.median(norms[problem.obs_cam == c]) / 1.1774
-                          if np.any(problem.obs_cam == c) else 0.0 for c in range(len(cams))])
-        threshold = np.maximum(6.0 * sigma, 0.6)[problem.obs_cam]
-        bad = worst > threshold
-        say(f"bundle adjustment stage {stage + 1} ({loss}): {idx.size} sightings, "
-            f"rms {np.sqrt(np.mean(result.residuals**2)):.3f} px, {int(bad.sum())} over "
-            f"6 sigma of their camera")
-        if stage == len(stages) - 1 or (stage >= 1 and not bad.any()):
-            break  # the residuals below belong to exactly the sightings in ``used``
-        used[idx[bad]] = False
-    timings["bundle_adjustment"] = time.perf_counter() - t1
+    frames = select_frames(obs, max_frames=max_frames)
+    result, problem, used, frames = _bundle_stages(obs, rig0, frames, offsets_rel, fixed_params, say)
     rig = rig_from_vectors(result.cameras, rig0)
+    if unordered is not None:  # order the ends again with the calibrated cameras, and refine
+        obs, kept = label_ends(unordered, rig)
+        say(f"two-marker wand: ends ordered in {int(kept.sum())} of {len(unordered)} sightings "
+            "with the adjusted cameras")
+        frames = select_frames(obs, max_frames=max_frames)
+        result, problem, used, frames = _bundle_stages(
+            obs, rig, frames, offsets_rel, fixed_params, say,
+            stages=(("linear", 1.0), ("linear", 1.0)))  # from adjusted cameras: no robust stage
+        rig = rig_from_vectors(result.cameras, rig)
+    reach = np.array([np.percentile(np.linalg.norm(obs.uv[obs.camera == i] - c.K[:2, 2], axis=-1),
+                                    99) if np.any(obs.camera == i) else 0.0
+                      for i, c in enumerate(rig)])
+    loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics, reach)
+    while loose and adaptive and intrinsics != LADDER[-1]:
+        simpler = LADDER[LADDER.index(intrinsics) + 1] if intrinsics in LADDER else LADDER[-1]
+        say(f"intrinsics {intrinsics.principal_point} principal point, {intrinsics.distortion} "
+            f"distortion not determined by these frames ({loose}); trying "
+            f"{simpler.principal_point}, {simpler.distortion}")
+        intrinsics = simpler
+        fixed_params = np.tile(intrinsics.fixed_mask(), (len(cams), 1))
+        rig = CameraRig(tuple(_reset_held(c, intrinsics) for c in rig))
+        result, problem, used, frames = _bundle_stages(obs, rig, frames, offsets_rel,
+                                                       fixed_params, say)
+        rig = rig_from_vectors(result.cameras, rig)
+        loose = undetermined_intrinsics(rig, result.camera_covariance, intrinsics, reach)
+    if loose:
+        raise CalibrationError(
+            f"the wand frames do not determine the intrinsics asked (principal point "
+            f"{intrinsics.principal_point}, distortion {intrinsics.distortion}): {loose}. Estimate "
+            "fewer (--principal-point fixed, --distortion k1 or none) or record more wand frames "
+            "reaching the image corners")
+    timings["bundle_adjustment"] = time.perf_counter() - t1
     wand_pts = problem.wand_points(result.frames)
     ground = None
     if ground_blobs is not None and ground_markers_mm is not None:
@@ -158,15 +380,26 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         timings["world_frame"] = time.perf_counter() - t2
         say(f"world frame from the ground square: fit rms {ground.rms_mm:.3f} mm, "
             f"scale agreement {ground.scale:.5f}")
+        world = "ground square"
+    else:
+        world = (f"first camera ({rig[0].id}): OpenCV axes, origin at its centre; no ground "
+                 "square, the scale is the wand's")
+        say(f"world frame: {world}")
     quality = quality_report(rig, obs, used, result.residuals, wand_length, ground)
+    quality["world_frame"] = world
+    quality["intrinsics"] = {"principal_point": intrinsics.principal_point,
+                             "distortion": intrinsics.distortion}
+    quality["wand_markers"] = int(offsets.size)
     timings["total"] = time.perf_counter() - t0
     quality["seconds"] = round(timings["total"], 3)
     return CalibrationResult(rig=rig, quality=quality, wand=obs, used=used,
                              residuals_px=result.residuals, ground=ground, timings_s=timings,
-                             wand_frames=frames, wand_points_mm=wand_pts)
+                             wand_frames=frames, wand_points_mm=wand_pts,
+                             camera_covariance=result.camera_covariance)
 
 
 def calibrate_session(session, *, max_frames: int = 3600,
+                      intrinsics: IntrinsicsModel | None = None,
                       progress: Callable[[str], None] | None = None) -> CalibrationResult:
     """Calibrate a loaded :class:`mocap.session.Session` from its wand and ground takes."""
     wand_takes = session.takes_of_kind("wand")
@@ -177,6 +410,7 @@ def calibrate_session(session, *, max_frames: int = 3600,
     say = progress or (lambda msg: None)
     offsets = session.wand.marker_offsets_mm
     ids = [c.id for c in session.cameras]
+    focal_search = any(not c.focal_px for c in session.cameras)
     cams = [initial_intrinsics(c.id, c.width, c.height, c.focal_px) for c in session.cameras]
     blobs = session.read_take(wand_takes[0].name)
     obs = find_wand(blobs, ids, offsets)
@@ -188,4 +422,5 @@ def calibrate_session(session, *, max_frames: int = 3600,
         ground_blobs = session.read_take(ground_takes[0].name)
         ground_markers = session.ground.markers_mm
     return calibrate(obs, cams, offsets, ground_blobs=ground_blobs,
-                     ground_markers_mm=ground_markers, max_frames=max_frames, progress=progress)
+                     ground_markers_mm=ground_markers, max_frames=max_frames,
+                     intrinsics=intrinsics, focal_search=focal_search, progress=progress)

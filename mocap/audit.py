@@ -9,11 +9,13 @@ written into audit.json):
   that ended in no labeled marker (reflections, noise); dropout rate, the share of frames in
   which it missed a marker it normally sees (it contributes to at least half of that marker's
   reconstructed frames), over all face takes;
-- per marker: cameras that see it (median over its frames; fewer than the reconstruction's
-  minimum fails), gaps (count, longest, and the share of face-take frames missing), noise floor
+- per marker: cameras that see it (those contributing to at least half its frames; fewer than
+  the reconstruction's minimum, ``min_cameras`` as the run was given, fails), gaps (count, longest, and the share of face-take frames missing), noise floor
   (rest take, per-axis sd; warn above 2x and fail above 4x the markers' median), across-trial
   spread (fail when rejected for abnormal spread);
-- rejections: every marker and trajectory left out, with its reason.
+- rejections: every marker and trajectory left out, with its reason;
+- missing markers: a template marker (markers.csv) that was never reconstructed fails by name
+  (no camera pair sees it, or it fell off).
 
 The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
 bad markers are left out by the rejections; a failing calibration or camera condemns the capture).
@@ -122,6 +124,12 @@ def audit_capture(result, min_cameras: int = 3) -> dict:
             items.append(("marker", name, worst, ", ".join(f"{k} {w}" for k, w in verdicts.items()
                                                            if w != "pass")))
     report["markers"] = markers
+    missing = list(getattr(recon.markers, "missing_from_template", ()))
+    report["missing_markers"] = missing
+    for name in missing:
+        items.append(("marker", name, "fail", "never reconstructed (in markers.csv, not found in "
+                      "the rest take: no camera pair sees it, or it fell off)"))
+    report["min_cameras"] = int(min_cameras)
     report["noise_floor_mm"] = recon.noise_floor_mm
     report["rejections"] = [{"du": (None if pd.isna(r.du) else int(r.du)), "marker": r.marker,
                              "reason": r.reason, "value": float(r.value),
@@ -157,6 +165,9 @@ def _markdown(a: dict) -> str:
     lines += [f"| {m['marker']} | {m['cameras']} | {m['gaps']} | {m['longest_gap_frames']} | "
               f"{m['missing_fraction']:.3f} | {m['noise_floor_mm']:.4f} | {m['across_trial_spread_mm']:.4f} | "
               f"{m['verdict']} |" for m in a["markers"]]
+    if a.get("missing_markers"):
+        lines += ["", "## Missing markers", "", "In markers.csv, never reconstructed: "
+                  + ", ".join(a["missing_markers"]) + "."]
     lines += ["", "## Rejections", ""]
     if a["rejections"]:
         lines += ["| DU | marker | reason | value | threshold |", "|---|---|---|---|---|"]
@@ -168,13 +179,14 @@ def _markdown(a: dict) -> str:
     return "\n".join(lines)
 
 
-def write_audit(result, out: Path, audit: dict | None = None) -> dict:
+def write_audit(result, out: Path, audit: dict | None = None, min_cameras: int = 3) -> dict:
     """Write audit.json and audit.md into ``out``; return the audit.
 
-    The audit's figures are drawn by the outputs layer
-    (:func:`mocap.analysis.figures.audit_figures`): a workflow returns data.
+    ``min_cameras``: the reconstruction's minimum, as the run was given it. The audit's figures
+    are drawn by the outputs layer (:func:`mocap.analysis.figures.audit_figures`): a workflow
+    returns data.
     """
-    a = audit if audit is not None else audit_capture(result)
+    a = audit if audit is not None else audit_capture(result, min_cameras=min_cameras)
     write_text(out / "audit.json", json.dumps(a, indent=2, default=float))
     write_text(out / "audit.md", _markdown(a))
     return a

@@ -411,7 +411,7 @@ def run_session(session_dir: str | Path, out_dir: str | Path,
 
     partial = RunResult(session=session, out_dir=out, calibration=calibration,
                         reconstruction=recon, averages=averages, rejections=rejections)
-    audit = write_audit(partial, out)
+    audit = write_audit(partial, out, min_cameras=settings.reconstruction.min_cameras)
     from mocap.analysis.figures import audit_figures  # the audit's figures (outputs layer)
     audit_figures(partial, audit, out)
     timings["audit_s"] = time.perf_counter() - t

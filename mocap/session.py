@@ -144,7 +144,9 @@ class WandSpec:
     Attributes
     ----------
     marker_offsets_mm : (n_markers,) read-only float array, mm from one end, strictly
-        increasing as given, n_markers >= 3, all gaps between neighbours distinct.
+        increasing as given, n_markers >= 2; with 3 or more, all gaps between neighbours
+        distinct (they tell the ends apart). Two markers: a T-wand or easyWand/Argus rod, whose
+        ends look alike (the calibration tells them apart by geometry).
     """
 
     marker_offsets_mm: np.ndarray
@@ -520,11 +522,12 @@ def _parse_wand(tbl, notes) -> WandSpec:
     if not isinstance(tbl, dict):
         raise SessionError(f"{MANIFEST}: wand: expected a table ([wand]), got {_show(tbl)}")
     _note_unknown(tbl, _WAND_KEYS, "wand", notes)
-    expected = "3 or more marker offsets along the wand, mm, strictly increasing, gaps distinct"
+    expected = ("2 or more marker offsets along the wand, mm, strictly increasing (with 3 or more, "
+                "gaps distinct)")
     value = _require(tbl, "marker_offsets_mm", "wand", expected)
     offsets = _float_array(value, "wand", "marker_offsets_mm", expected, ndim=1)
     where = f"{MANIFEST}: wand.marker_offsets_mm"
-    if offsets.size < 3:
+    if offsets.size < 2:
         raise SessionError(f"{where}: expected {expected}; got {offsets.size} marker(s)")
     gaps = np.diff(offsets)
     if np.any(gaps <= 0):

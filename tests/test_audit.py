@@ -62,3 +62,50 @@ def test_labeled_session_audit(tmp_path):
     nose = next(m for m in a["markers"] if m["marker"] == truth["nose_bridge_marker"])
     assert nose["gaps"] > 0 and nose["verdict"] != "pass"
     assert res.summary["audit"]["verdict"] in ("pass", "warn")
+
+
+def _two_camera_run(tmp_path, nose_bridge_cameras, min_cameras, seed):
+    from mocap.reconstruct.correspondence import ReconstructionSettings
+
+    root = make_session(tmp_path / "s", seed=seed, du_ids=(4,), n_trials=3, n_markers=24,
+                        motion_plans=(), battery=False, wand_duration_s=10.0,
+                        nose_bridge_cameras=nose_bridge_cameras)
+    settings = RunSettings(reconstruction=ReconstructionSettings(min_cameras=min_cameras),
+                           recording=False, jobs=1)
+    res = run_session(root / "session", root / "out", settings=settings)
+    truth = json.loads((root / "truth" / "truth.json").read_text())
+    return root, res, truth["nose_bridge_marker"]
+
+
+def test_audit_judges_cameras_by_the_runs_minimum(tmp_path):
+    """Issue #18: with --min-cameras 2, a marker two cameras see is reconstructed (n_cameras 2)
+    and not failed for its cameras; the shadowed nose bridge is still named, for its spread."""
+    import pandas as pd
+
+    root, res, nose = _two_camera_run(tmp_path, nose_bridge_cameras=2, min_cameras=2, seed=41)
+    a = json.loads((root / "out" / "audit.json").read_text())
+    assert a["min_cameras"] == 2
+    m = next(m for m in a["markers"] if m["marker"] == nose)
+    assert m["cameras"] == 2 and m["verdicts"]["cameras"] == "pass"
+    assert m["verdicts"]["spread"] == "fail" and ("marker", nose) in flagged(a)
+    tr = pd.read_parquet(next((root / "out" / "trajectories").glob("du04_t01.parquet")))
+    nb = tr[(tr.marker == nose) & tr.x.notna()]
+    assert len(nb) > 0 and (nb.n_cameras == 2).mean() > 0.5 and nb.residual_px.notna().all()
+
+
+def test_marker_no_camera_pair_sees_fails_by_name(tmp_path, capsys):
+    from mocap.cli import main
+
+    root = make_session(tmp_path / "s", seed=42, du_ids=(4,), n_trials=2, n_markers=24,
+                        motion_plans=(), battery=False, wand_duration_s=10.0,
+                        nose_bridge_cameras=1)
+    truth = json.loads((root / "truth" / "truth.json").read_text())
+    nose = truth["nose_bridge_marker"]
+    assert main(["run", str(root / "session"), "--out", str(root / "out"), "--no-rrd"]) == 0
+    a = json.loads((root / "out" / "audit.json").read_text())
+    assert a["missing_markers"] == [nose]
+    assert {"kind": "marker", "item": nose, "verdict": "fail"}.items() <= next(
+        f for f in a["flagged"] if f["item"] == nose).items()
+    out = capsys.readouterr().out
+    assert "never reconstructed" in out and nose in out
+    assert nose in (root / "out" / "audit.md").read_text()

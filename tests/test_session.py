@@ -249,10 +249,10 @@ def test_focal_not_positive(spec2d, tmp_path):
         load(spec2d, tmp_path)
 
 
-def test_wand_fewer_than_three_markers(spec2d, tmp_path):
-    spec2d.manifest["wand"]["marker_offsets_mm"] = [0.0, 45.0]
+def test_wand_fewer_than_two_markers(spec2d, tmp_path):
+    spec2d.manifest["wand"]["marker_offsets_mm"] = [45.0]
     with pytest.raises(
-        SessionError, match=r"session\.toml: wand\.marker_offsets_mm: expected 3 or more.*got 2"
+        SessionError, match=r"session\.toml: wand\.marker_offsets_mm: expected 2 or more.*got 1"
     ):
         load(spec2d, tmp_path)
 

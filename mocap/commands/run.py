@@ -59,4 +59,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"{s['session']['name']}: {sum(s['counts']['takes'].values())} takes, "
           f"{s['counts']['rows']} face-take rows; stages: {', '.join(s['stages'])}; "
           f"results in {result.out_dir}")
+    a = result.audit or {}
+    print(f"audit verdict: {a.get('verdict')}")
+    if a.get("missing_markers"):
+        print(f"  markers in markers.csv never reconstructed: {', '.join(a['missing_markers'])}")
+    for f in a.get("flagged", []):
+        if f["kind"] == "marker" and f["item"] not in a.get("missing_markers", []):
+            print(f"  marker {f['item']}: {f['verdict']} ({f['why']})")
     return 0

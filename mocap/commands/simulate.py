@@ -22,6 +22,7 @@ examples:
   mocap simulate out/alt --preset small --effect coupling --effect-form alt
   mocap simulate out/paper --preset paper            # the full study, Parquet takes
   mocap simulate out/designed --preset small --commands commands.csv
+  mocap simulate out/rod --preset small --wand-offsets 0,200 --no-ground   # easyWand-style rig
 """
 
 
@@ -59,6 +60,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--commands", type=Path, action="append", default=[],
                    help="a command file (time_s,du,command) to play as an extra motion take")
     p.add_argument("--no-battery", action="store_true", help="omit the identification battery")
+    p.add_argument("--wand-offsets", default=None,
+                   help="wand marker offsets, mm, comma-separated (default 0,50,150; two values "
+                        "make an easyWand/Argus rod whose ends look alike)")
+    p.add_argument("--no-ground", action="store_true",
+                   help="no ground square: the session's world frame is the first camera's")
     p.add_argument("--force", action="store_true", help="write into a non-empty OUT_DIR")
 
 
@@ -117,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
             degrade_camera=args.degrade_camera,
             extra_commands=tuple(args.commands) or None,
             battery=False if args.no_battery else None,
+            wand_offsets_mm=(tuple(float(v) for v in args.wand_offsets.split(","))
+                             if args.wand_offsets else None),
+            ground=False if args.no_ground else None,
         )
         cfg = preset(args.preset, **overrides)
         if args.noise_px is not None:

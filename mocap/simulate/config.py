@@ -32,6 +32,9 @@ class SimConfig:
     wand_duration_s, wand_gap_s : wand take length and seconds in its middle with the wand out of
         view.  wand_sparse_camera, wand_sparse_fraction : a camera that sees the wand only in that
         fraction of frames.
+    wand_offsets_mm : the wand's marker offsets, mm (2 markers: an easyWand/Argus rod, ends alike).
+    ground : record a ground square take and write [ground]; without it the session's world
+        frame is the first camera's.
     motion_plans, motion_dus : designed motions (the paper's smile on DUs 1, 7, 12).
     battery : add the identification battery (fast/slow trapezoids, minor loops, DU pairs) as
         motion takes.  extra_commands : command files to play as extra motion takes.
@@ -66,6 +69,8 @@ class SimConfig:
     extra_commands: tuple[Path, ...] = field(default_factory=tuple)
     nose_bridge_cameras: int = 3
     nose_bridge_jitter_mm: float = 0.15
+    wand_offsets_mm: tuple[float, ...] = (0.0, 50.0, 150.0)
+    ground: bool = True
 
     def __post_init__(self) -> None:
         known = {d.id for d in DU_TABLE}
@@ -85,6 +90,8 @@ class SimConfig:
                              f"got {self.face_family!r}")
         if not (self.labeled_noise_mm >= 0):
             raise ValueError(f"simulate: expected labeled_noise_mm >= 0, got {self.labeled_noise_mm}")
+        if len(self.wand_offsets_mm) < 2:
+            raise ValueError(f"simulate: expected 2 or more wand offsets, got {list(self.wand_offsets_mm)}")
         if self.wand_duration_s <= self.wand_gap_s:
             raise ValueError("simulate: the wand gap must be shorter than the wand take")
 

@@ -50,7 +50,7 @@ from mocap.simulate.dus import DU_BY_ID
 from mocap.simulate.face import VirtualFace, make_face
 from mocap.simulate.families import family_stream, resolve_family
 from mocap.simulate.motion import true_take
-from mocap.simulate.rig import GROUND_MARKERS_MM, WAND_OFFSETS_MM, make_rig, wand_motion
+from mocap.simulate.rig import GROUND_MARKERS_MM, make_rig, wand_motion
 from mocap.simulate.smile import SmileTiming, nominal_branches, smile_commands
 
 RESPONSE_TAIL_S = 0.05  # one more step at 0 after the trapezoid's last row
@@ -97,7 +97,8 @@ def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
     takes: list[PlannedTake] = []
     if not cfg.labeled:
         takes.append(PlannedTake("wand", "wand", duration_s=cfg.wand_duration_s))
-        takes.append(PlannedTake("ground", "ground", duration_s=cfg.ground_s))
+        if cfg.ground:
+            takes.append(PlannedTake("ground", "ground", duration_s=cfg.ground_s))
     takes.append(PlannedTake("rest", "rest", duration_s=cfg.rest_s))
     for du in cfg.du_ids:
         rows = trapezoid(du)
@@ -151,8 +152,10 @@ def manifest_text(cfg: SimConfig, rig, takes: list[PlannedTake], files: dict, cm
             focal = round(float(cam.focal_px) * (1.0 + 0.06 * np.sin(7.0 * len(cam.id) + cam.K[0, 2])), 1)
             lines += ["[[cameras]]", f"id = {_toml_str(cam.id)}", f"width = {cam.width}",
                       f"height = {cam.height}", f"focal_px = {float(focal)!r}", ""]
-        lines += ["[wand]", f"marker_offsets_mm = {[float(v) for v in WAND_OFFSETS_MM]}", ""]
-        lines += ["[ground]", f"markers_mm = {[[float(v) for v in r] for r in GROUND_MARKERS_MM]}", ""]
+        lines += ["[wand]", f"marker_offsets_mm = {[float(v) for v in cfg.wand_offsets_mm]}", ""]
+        if cfg.ground:
+            lines += ["[ground]",
+                      f"markers_mm = {[[float(v) for v in r] for r in GROUND_MARKERS_MM]}", ""]
     for du in cfg.du_ids:
         s = DU_BY_ID[du]
         lines += ["[[dus]]", f"id = {du}", f"name = {_toml_str(s.name)}",
@@ -240,7 +243,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         shifts = {}
         n_frames = int(round(t.duration_s * cfg.fps))
         if t.kind == "wand":
-            pos = wand_motion(rng, n_frames, cfg.fps, WAND_OFFSETS_MM)
+            pos = wand_motion(rng, n_frames, cfg.fps, np.asarray(cfg.wand_offsets_mm, float))
             if cfg.wand_gap_s > 0:
                 g0 = int((n_frames - cfg.wand_gap_s * cfg.fps) / 2)
                 pos[g0: g0 + int(cfg.wand_gap_s * cfg.fps)] = np.nan
@@ -298,6 +301,8 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         write_calibration(truth / "cameras.toml", rig, header={"source": "facemocap simulator truth"})
     markers_rng = np.random.default_rng([cfg.seed, 7])
     approx = face.rest_mm + markers_rng.normal(0.0, 1.0, face.rest_mm.shape)
+    if not cfg.ground and not cfg.labeled:  # FORMAT.md: the world frame is the first camera's
+        approx = rig[0].world_to_camera(approx)
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)
     write_parquet(face_table(face), truth / "face.parquet")
@@ -309,7 +314,8 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         "nose_bridge_marker": face.marker_names[face.nose_bridge],
         "nose_bridge_cameras": [rig.ids[i] for i in nb_cams],
         "degraded_camera": cfg.degrade_camera,
-        "wand_offsets_mm": WAND_OFFSETS_MM.tolist(),
+        "wand_offsets_mm": [float(v) for v in cfg.wand_offsets_mm],
+        "ground": bool(cfg.ground),
         "takes": take_meta,
     }
     write_text(truth / "truth.json", json.dumps(info, indent=2))
