@@ -1,9 +1,14 @@
-"""Compiled (numba) kernel: linear triangulation plus Gauss-Newton, one fused pass per point.
+"""Compiled (numba) triangulation: linear solution plus Gauss-Newton, on blocks of points.
 
 Same mathematics as :func:`mocap.calib.triangulation.linear_triangulation` followed by
-:func:`mocap.calib.triangulation.gauss_newton` (the NumPy reference the tests compare against), but
-per point in registers and in parallel over points: about 30 x the NumPy version's throughput.
-The kernel is compiled on first use and cached on disk (``cache=True``).
+:func:`mocap.calib.triangulation.gauss_newton` (the NumPy reference the tests compare against).
+Points are solved a block at a time as structure-of-arrays loops (``solve_block``), so every
+loop over points vectorises; blocks run in parallel. ``triangulate_pixels_kernel`` fuses the
+undistortion of distorted pixels (:mod:`mocap.calib.distortion_kernel`), the solution and the
+reprojection residuals in one pass: what :func:`mocap.calib.triangulation.triangulate` runs.
+Kernels are compiled on first use and cached on disk (``cache=True``); ``error_model="numpy"``
+(a division by zero gives inf or NaN, as in NumPy, instead of raising) is what lets LLVM
+vectorise loops that divide. Camera weights must be positive.
 """
 
 from __future__ import annotations
@@ -33,92 +38,6 @@ def _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def solve_point(Rt, weights, xn, n, iterations):
-    """One point from its observations xn[:, n] (C, ., 2) NaN = unobserved: the weighted linear
-    solution, then ``iterations`` Gauss-Newton steps. Returns (X0, X1, X2) mm, NaN below two
-    views."""
-    C = Rt.shape[0]
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    b0 = b1 = b2 = 0.0
-    count = 0
-    for c in range(C):
-        x = xn[c, n, 0]
-        y = xn[c, n, 1]
-        if x != x or y != y:
-            continue
-        count += 1
-        w2 = weights[c] * weights[c]
-        for row in range(2):
-            u = x if row == 0 else y
-            r0 = u * Rt[c, 2, 0] - Rt[c, row, 0]
-            r1 = u * Rt[c, 2, 1] - Rt[c, row, 1]
-            r2 = u * Rt[c, 2, 2] - Rt[c, row, 2]
-            r3 = u * Rt[c, 2, 3] - Rt[c, row, 3]
-            a00 += w2 * r0 * r0
-            a01 += w2 * r0 * r1
-            a02 += w2 * r0 * r2
-            a11 += w2 * r1 * r1
-            a12 += w2 * r1 * r2
-            a22 += w2 * r2 * r2
-            b0 -= w2 * r0 * r3
-            b1 -= w2 * r1 * r3
-            b2 -= w2 * r2 * r3
-    if count < 2:
-        return np.nan, np.nan, np.nan
-    X0, X1, X2 = _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
-    for _ in range(iterations):
-        h00 = h01 = h02 = h11 = h12 = h22 = 0.0
-        g0 = g1 = g2 = 0.0
-        for c in range(C):
-            x = xn[c, n, 0]
-            y = xn[c, n, 1]
-            if x != x or y != y:
-                continue
-            w2 = weights[c] * weights[c]
-            xc = Rt[c, 0, 0] * X0 + Rt[c, 0, 1] * X1 + Rt[c, 0, 2] * X2 + Rt[c, 0, 3]
-            yc = Rt[c, 1, 0] * X0 + Rt[c, 1, 1] * X1 + Rt[c, 1, 2] * X2 + Rt[c, 1, 3]
-            zc = Rt[c, 2, 0] * X0 + Rt[c, 2, 1] * X1 + Rt[c, 2, 2] * X2 + Rt[c, 2, 3]
-            if abs(zc) < 1e-9:
-                continue
-            iz = 1.0 / zc
-            ex = x - xc * iz
-            ey = y - yc * iz
-            # rows of d(proj)/dX = [[iz, 0, -xc iz^2], [0, iz, -yc iz^2]] @ R
-            j00 = iz * Rt[c, 0, 0] - xc * iz * iz * Rt[c, 2, 0]
-            j01 = iz * Rt[c, 0, 1] - xc * iz * iz * Rt[c, 2, 1]
-            j02 = iz * Rt[c, 0, 2] - xc * iz * iz * Rt[c, 2, 2]
-            j10 = iz * Rt[c, 1, 0] - yc * iz * iz * Rt[c, 2, 0]
-            j11 = iz * Rt[c, 1, 1] - yc * iz * iz * Rt[c, 2, 1]
-            j12 = iz * Rt[c, 1, 2] - yc * iz * iz * Rt[c, 2, 2]
-            h00 += w2 * (j00 * j00 + j10 * j10)
-            h01 += w2 * (j00 * j01 + j10 * j11)
-            h02 += w2 * (j00 * j02 + j10 * j12)
-            h11 += w2 * (j01 * j01 + j11 * j11)
-            h12 += w2 * (j01 * j02 + j11 * j12)
-            h22 += w2 * (j02 * j02 + j12 * j12)
-            g0 += w2 * (j00 * ex + j10 * ey)
-            g1 += w2 * (j01 * ex + j11 * ey)
-            g2 += w2 * (j02 * ex + j12 * ey)
-        d0, d1, d2 = _solve3(h00, h01, h02, h11, h12, h22, g0, g1, g2)
-        if d0 == d0:
-            X0 += d0
-            X1 += d1
-            X2 += d2
-    return X0, X1, X2
-
-
-@njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
-def triangulate_kernel(Rt, weights, xn, iterations, out):
-    """Rt (C, 3, 4); weights (C,); xn (C, N, 2) NaN = unobserved; out (N, 3) written."""
-    N = xn.shape[1]
-    for n in prange(N):
-        X0, X1, X2 = solve_point(Rt, weights, xn, n, iterations)
-        out[n, 0] = X0
-        out[n, 1] = X1
-        out[n, 2] = X2
-
-
-@njit(cache=True, inline="always", error_model="numpy")
 def _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, x0, x1, x2):
     """:func:`_solve3` on the first ``m`` entries of (B,) arrays, into x0, x1, x2 (B,)."""
     for p in range(m):
@@ -138,6 +57,142 @@ def _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, x0, x1, x2):
         x2[p] = np.nan if singular else s2
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2):
+    """Triangulate the first ``m`` points of a block: the weighted linear solution (DLT normal
+    equations), then ``iterations`` Gauss-Newton steps on the weighted normalised residuals.
+
+    Rt (C, 3, 4); xb, yb (C, B) undistorted normalised coordinates (any finite value where
+    unobserved); wb (C, B) the camera's squared weight where observed, 0 where not. Writes
+    X0, X1, X2 (B,) mm: NaN below two views or for a singular system. The operations of the
+    NumPy reference (:func:`mocap.calib.triangulation.linear_triangulation`,
+    :func:`~mocap.calib.triangulation.gauss_newton`) per point; laid out over the block's points
+    (structure of arrays, unobserved views masked by their zero weight instead of a branch) so
+    every loop over points vectorises.
+    """
+    C = Rt.shape[0]
+    B = X0.shape[0]
+    # linear solution: the normal equations of the DLT rows, accumulated camera by camera
+    a00 = np.zeros(B)
+    a01 = np.zeros(B)
+    a02 = np.zeros(B)
+    a11 = np.zeros(B)
+    a12 = np.zeros(B)
+    a22 = np.zeros(B)
+    b0 = np.zeros(B)
+    b1 = np.zeros(B)
+    b2 = np.zeros(B)
+    used = np.zeros(B, np.int64)
+    for c in range(C):
+        for p in range(m):
+            used[p] += wb[c, p] != 0.0
+        for row in range(2):
+            q0, q1, q2, q3 = Rt[c, 2, 0], Rt[c, 2, 1], Rt[c, 2, 2], Rt[c, 2, 3]
+            s0, s1, s2, s3 = Rt[c, row, 0], Rt[c, row, 1], Rt[c, row, 2], Rt[c, row, 3]
+            for p in range(m):
+                u = xb[c, p] if row == 0 else yb[c, p]
+                w2 = wb[c, p]
+                r0 = u * q0 - s0
+                r1 = u * q1 - s1
+                r2 = u * q2 - s2
+                r3 = u * q3 - s3
+                a00[p] += w2 * r0 * r0
+                a01[p] += w2 * r0 * r1
+                a02[p] += w2 * r0 * r2
+                a11[p] += w2 * r1 * r1
+                a12[p] += w2 * r1 * r2
+                a22[p] += w2 * r2 * r2
+                b0[p] -= w2 * r0 * r3
+                b1[p] -= w2 * r1 * r3
+                b2[p] -= w2 * r2 * r3
+    _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, X0, X1, X2)
+    for p in range(m):
+        few = used[p] < 2
+        X0[p] = np.nan if few else X0[p]
+        X1[p] = np.nan if few else X1[p]
+        X2[p] = np.nan if few else X2[p]
+    d0 = np.empty(B)
+    d1 = np.empty(B)
+    d2 = np.empty(B)
+    for _ in range(iterations):  # Gauss-Newton on the focal-weighted normalised residuals
+        a00[:] = 0.0
+        a01[:] = 0.0
+        a02[:] = 0.0
+        a11[:] = 0.0
+        a12[:] = 0.0
+        a22[:] = 0.0
+        b0[:] = 0.0
+        b1[:] = 0.0
+        b2[:] = 0.0
+        for c in range(C):
+            r00, r01, r02, r03 = Rt[c, 0, 0], Rt[c, 0, 1], Rt[c, 0, 2], Rt[c, 0, 3]
+            r10, r11, r12, r13 = Rt[c, 1, 0], Rt[c, 1, 1], Rt[c, 1, 2], Rt[c, 1, 3]
+            r20, r21, r22, r23 = Rt[c, 2, 0], Rt[c, 2, 1], Rt[c, 2, 2], Rt[c, 2, 3]
+            for p in range(m):
+                xc = r00 * X0[p] + r01 * X1[p] + r02 * X2[p] + r03
+                yc = r10 * X0[p] + r11 * X1[p] + r12 * X2[p] + r13
+                zc = r20 * X0[p] + r21 * X1[p] + r22 * X2[p] + r23
+                near = abs(zc) < 1e-9  # (False for NaN: a NaN point stays NaN)
+                w2 = 0.0 if near else wb[c, p]
+                iz = 0.0 if near else 1.0 / zc
+                ex = xb[c, p] - xc * iz
+                ey = yb[c, p] - yc * iz
+                j00 = iz * r00 - xc * iz * iz * r20
+                j01 = iz * r01 - xc * iz * iz * r21
+                j02 = iz * r02 - xc * iz * iz * r22
+                j10 = iz * r10 - yc * iz * iz * r20
+                j11 = iz * r11 - yc * iz * iz * r21
+                j12 = iz * r12 - yc * iz * iz * r22
+                a00[p] += w2 * (j00 * j00 + j10 * j10)
+                a01[p] += w2 * (j00 * j01 + j10 * j11)
+                a02[p] += w2 * (j00 * j02 + j10 * j12)
+                a11[p] += w2 * (j01 * j01 + j11 * j11)
+                a12[p] += w2 * (j01 * j02 + j11 * j12)
+                a22[p] += w2 * (j02 * j02 + j12 * j12)
+                b0[p] += w2 * (j00 * ex + j10 * ey)
+                b1[p] += w2 * (j01 * ex + j11 * ey)
+                b2[p] += w2 * (j02 * ex + j12 * ey)
+        _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, d0, d1, d2)
+        for p in range(m):
+            step = d0[p] == d0[p]
+            X0[p] = X0[p] + d0[p] if step else X0[p]
+            X1[p] = X1[p] + d1[p] if step else X1[p]
+            X2[p] = X2[p] + d2[p] if step else X2[p]
+
+
+@njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
+def triangulate_kernel(Rt, weights, xn, iterations, out):
+    """Rt (C, 3, 4); weights (C,); xn (C, N, 2) undistorted normalised, NaN = unobserved;
+    out (N, 3) mm written (NaN below two views). Blocks of points run in parallel."""
+    C = xn.shape[0]
+    N = xn.shape[1]
+    B = BLOCK
+    n_blocks = (N + B - 1) // B
+    for blk in prange(n_blocks):
+        s = blk * B
+        m = min(B, N - s)
+        xb = np.empty((C, B))
+        yb = np.empty((C, B))
+        wb = np.empty((C, B))
+        for c in range(C):
+            w2 = weights[c] * weights[c]
+            for p in range(m):
+                x = xn[c, s + p, 0]
+                y = xn[c, s + p, 1]
+                seen = x == x and y == y
+                xb[c, p] = x if seen else 0.0
+                yb[c, p] = y if seen else 0.0
+                wb[c, p] = w2 if seen else 0.0
+        X0 = np.empty(B)
+        X1 = np.empty(B)
+        X2 = np.empty(B)
+        solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
+        for p in range(m):
+            out[s + p, 0] = X0[p]
+            out[s + p, 1] = X1[p]
+            out[s + p, 2] = X2[p]
+
+
 @njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
 def triangulate_pixels_kernel(K, dist, R, t, Rt, weights, uv, iterations, undistort_iterations,
                               min_cameras, X, n_cam, resid):
@@ -149,10 +204,9 @@ def triangulate_pixels_kernel(K, dist, R, t, Rt, weights, uv, iterations, undist
     the views of the distance between pixel and reprojection (views behind the camera left out;
     NaN when none is left or X is NaN).
 
-    The arithmetic per point is :func:`solve_point`'s and :func:`project_pixel`'s, operation for
-    operation, laid out over the block's points (structure of arrays, unobserved views masked by
-    a zero weight instead of a branch) so every loop over points vectorises. Blocks run in
-    parallel.
+    The arithmetic per point is :func:`solve_block`'s and
+    :func:`mocap.calib.distortion_kernel.project_pixel`'s, operation for operation, laid out over
+    the block's points so every loop over points vectorises. Blocks run in parallel.
     """
     C = uv.shape[0]
     N = uv.shape[1]
@@ -203,105 +257,18 @@ def triangulate_pixels_kernel(K, dist, R, t, Rt, weights, uv, iterations, undist
                 xb[c, p] = x[p] if ok else 0.0
                 yb[c, p] = y[p] if ok else 0.0
                 wb[c, p] = wb[c, p] if ok else 0.0
-        # linear solution: the normal equations of the DLT rows, accumulated camera by camera
-        a00 = np.zeros(B)
-        a01 = np.zeros(B)
-        a02 = np.zeros(B)
-        a11 = np.zeros(B)
-        a12 = np.zeros(B)
-        a22 = np.zeros(B)
-        b0 = np.zeros(B)
-        b1 = np.zeros(B)
-        b2 = np.zeros(B)
-        used = np.zeros(B, np.int64)
-        for c in range(C):
-            for p in range(m):
-                used[p] += wb[c, p] != 0.0
-            for row in range(2):
-                q0, q1, q2, q3 = Rt[c, 2, 0], Rt[c, 2, 1], Rt[c, 2, 2], Rt[c, 2, 3]
-                s0, s1, s2, s3 = Rt[c, row, 0], Rt[c, row, 1], Rt[c, row, 2], Rt[c, row, 3]
-                for p in range(m):
-                    u = xb[c, p] if row == 0 else yb[c, p]
-                    w2 = wb[c, p]
-                    r0 = u * q0 - s0
-                    r1 = u * q1 - s1
-                    r2 = u * q2 - s2
-                    r3 = u * q3 - s3
-                    a00[p] += w2 * r0 * r0
-                    a01[p] += w2 * r0 * r1
-                    a02[p] += w2 * r0 * r2
-                    a11[p] += w2 * r1 * r1
-                    a12[p] += w2 * r1 * r2
-                    a22[p] += w2 * r2 * r2
-                    b0[p] -= w2 * r0 * r3
-                    b1[p] -= w2 * r1 * r3
-                    b2[p] -= w2 * r2 * r3
         X0 = np.empty(B)
         X1 = np.empty(B)
         X2 = np.empty(B)
-        _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, X0, X1, X2)
-        for p in range(m):
-            few = used[p] < 2
-            X0[p] = np.nan if few else X0[p]
-            X1[p] = np.nan if few else X1[p]
-            X2[p] = np.nan if few else X2[p]
-        d0 = np.empty(B)
-        d1 = np.empty(B)
-        d2 = np.empty(B)
-        for _ in range(iterations):  # Gauss-Newton on the focal-weighted normalised residuals
-            a00[:] = 0.0
-            a01[:] = 0.0
-            a02[:] = 0.0
-            a11[:] = 0.0
-            a12[:] = 0.0
-            a22[:] = 0.0
-            b0[:] = 0.0
-            b1[:] = 0.0
-            b2[:] = 0.0
-            for c in range(C):
-                r00, r01, r02, r03 = Rt[c, 0, 0], Rt[c, 0, 1], Rt[c, 0, 2], Rt[c, 0, 3]
-                r10, r11, r12, r13 = Rt[c, 1, 0], Rt[c, 1, 1], Rt[c, 1, 2], Rt[c, 1, 3]
-                r20, r21, r22, r23 = Rt[c, 2, 0], Rt[c, 2, 1], Rt[c, 2, 2], Rt[c, 2, 3]
-                for p in range(m):
-                    xc = r00 * X0[p] + r01 * X1[p] + r02 * X2[p] + r03
-                    yc = r10 * X0[p] + r11 * X1[p] + r12 * X2[p] + r13
-                    zc = r20 * X0[p] + r21 * X1[p] + r22 * X2[p] + r23
-                    near = abs(zc) < 1e-9  # (False for NaN: a NaN point stays NaN)
-                    w2 = 0.0 if near else wb[c, p]
-                    iz = 0.0 if near else 1.0 / zc
-                    ex = xb[c, p] - xc * iz
-                    ey = yb[c, p] - yc * iz
-                    j00 = iz * r00 - xc * iz * iz * r20
-                    j01 = iz * r01 - xc * iz * iz * r21
-                    j02 = iz * r02 - xc * iz * iz * r22
-                    j10 = iz * r10 - yc * iz * iz * r20
-                    j11 = iz * r11 - yc * iz * iz * r21
-                    j12 = iz * r12 - yc * iz * iz * r22
-                    a00[p] += w2 * (j00 * j00 + j10 * j10)
-                    a01[p] += w2 * (j00 * j01 + j10 * j11)
-                    a02[p] += w2 * (j00 * j02 + j10 * j12)
-                    a11[p] += w2 * (j01 * j01 + j11 * j11)
-                    a12[p] += w2 * (j01 * j02 + j11 * j12)
-                    a22[p] += w2 * (j02 * j02 + j12 * j12)
-                    b0[p] += w2 * (j00 * ex + j10 * ey)
-                    b1[p] += w2 * (j01 * ex + j11 * ey)
-                    b2[p] += w2 * (j02 * ex + j12 * ey)
-            _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, d0, d1, d2)
-            for p in range(m):
-                step = d0[p] == d0[p]
-                X0[p] = X0[p] + d0[p] if step else X0[p]
-                X1[p] = X1[p] + d1[p] if step else X1[p]
-                X2[p] = X2[p] + d2[p] if step else X2[p]
+        solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
         for p in range(m):
             few = views[p] < min_cameras
             X0[p] = np.nan if few else X0[p]
             X1[p] = np.nan if few else X1[p]
             X2[p] = np.nan if few else X2[p]
         # reprojection residuals: project_pixel's operations, per camera over the block
-        total = a00
-        count = used
-        total[:] = 0.0
-        count[:] = 0
+        total = np.zeros(B)
+        count = np.zeros(B, np.int64)
         for c in range(C):
             r00, r01, r02, r03 = R[c, 0, 0], R[c, 0, 1], R[c, 0, 2], t[c, 0]
             r10, r11, r12, r13 = R[c, 1, 0], R[c, 1, 1], R[c, 1, 2], t[c, 1]
