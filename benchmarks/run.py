@@ -376,10 +376,12 @@ def main() -> int:
             print("paper session not cached: running simulate first", file=sys.stderr)
             names.insert(names.index(name), "simulate")
         print(f"== {name}", file=sys.stderr, flush=True)
+        load = os.getloadavg()[0]  # the machine may be shared: say how busy it was
         out = subprocess.run([sys.executable, __file__, "--stage", name], check=True,
                              capture_output=True, text=True)
         info = json.loads(out.stdout.strip().splitlines()[-1])
         info["targets"] = TARGETS.get(name, {})
+        info["load_average_1min"] = round(max(load, os.getloadavg()[0]), 1)
         info["date"] = time.strftime("%Y-%m-%d")
         results.setdefault("stages", {})[name] = info
         print(json.dumps(info), file=sys.stderr)
@@ -391,6 +393,10 @@ def main() -> int:
         details = ", ".join(f"{k}={v}" for k, v in info.items()
                             if k not in ("seconds", "peak_gb", "targets", "date"))
         lines.append(f"| {name} | {info['seconds']} | {info['peak_gb']} | {info['targets']} | {details} |")
+    lines += ["", f"{results['machine']['cpus']} CPUs; `load_average_1min` is the machine's load when "
+              "the stage ran (above the CPU count, other jobs shared the machine and wall times "
+              "are longer than on a quiet one; the `per_cpu_s` figures are not affected). "
+              "Profiles of `mocap run` before and after the performance work: `profile.md`."]
     (HERE / "results.md").write_text("\n".join(lines) + "\n")
     return 0
 
