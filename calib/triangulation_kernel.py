@@ -19,27 +19,11 @@ from numba import njit, prange
 from mocap.calib.distortion_kernel import BLOCK, undistort_rounds
 
 
-@njit(cache=True, fastmath=False, error_model="numpy")
-def _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
-    """Solve a symmetric 3x3 system by Cramer's rule; NaN when singular."""
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if abs(det) < 1e-300:
-        return np.nan, np.nan, np.nan
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    x0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
-    x1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
-    x2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
-    return x0, x1, x2
-
-
 @njit(cache=True, inline="always", error_model="numpy")
 def _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, x0, x1, x2):
-    """:func:`_solve3` on the first ``m`` entries of (B,) arrays, into x0, x1, x2 (B,)."""
+    """Solve the symmetric 3x3 systems [[a00, a01, a02], [., a11, a12], [., ., a22]] x = b of the
+    first ``m`` entries of (B,) arrays by Cramer's rule, into x0, x1, x2 (B,); NaN where
+    singular (|det| < 1e-300)."""
     for p in range(m):
         c00 = a11[p] * a22[p] - a12[p] * a12[p]
         c01 = a02[p] * a12[p] - a01[p] * a22[p]
@@ -64,7 +48,7 @@ def solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2):
 
     Rt (C, 3, 4); xb, yb (C, B) undistorted normalised coordinates (any finite value where
     unobserved); wb (C, B) the camera's squared weight where observed, 0 where not. Writes
-    X0, X1, X2 (B,) mm: NaN below two views or for a singular system. The operations of the
+    X0, X1, X2 (B,) mm: NaN below two views or for a singular system. The mathematics of the
     NumPy reference (:func:`mocap.calib.triangulation.linear_triangulation`,
     :func:`~mocap.calib.triangulation.gauss_newton`) per point; laid out over the block's points
     (structure of arrays, unobserved views masked by their zero weight instead of a branch) so
