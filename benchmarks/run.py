@@ -407,7 +407,8 @@ def main() -> int:
         lines.append(f"| {name} | {info['seconds']} | {info['peak_gb']} | {info['targets']} | {details} |")
     lines += ["", f"{results['machine']['cpus']} CPUs; `load_average_1min` is the machine's load when "
               "the stage ran (above the CPU count, other jobs shared the machine and wall times "
-              "are longer than on a quiet one; the `per_cpu_s` figures are not affected). "
+              "are longer than on a quiet one; the CPU-second figures, `*_per_cpu_s` and `cpu_*`, "
+              "are not affected). "
               "Profiles of `mocap run` before and after the performance work: `profile.md`."]
     (HERE / "results.md").write_text("\n".join(lines) + "\n")
     return 0
