@@ -3,7 +3,9 @@
 Many independent curves (markers, bootstrap replicates) are fitted at once by a damped
 Gauss-Newton (Levenberg-Marquardt) iteration vectorised over curves: each curve has two
 parameters, so each step solves a 2 x 2 system per curve in closed form. Samples carry weights
-(0 drops a sample: NaN data, resampling counts).
+(0 drops a sample: NaN data, resampling counts). Samples sharing an abscissa (pooled fits over
+markers, their bootstrap) are fitted through their sums per abscissa (:func:`grouped_samples`):
+the same steps on ~100 x fewer samples.
 """
 
 from __future__ import annotations
@@ -56,6 +58,35 @@ def initial_guess(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarr
     return a, b
 
 
+def grouped_samples(x: np.ndarray, Y: np.ndarray, W: np.ndarray):
+    """The weighted least-squares problem on the distinct abscissae of ``x``.
+
+    Samples sharing an abscissa (a pooled fit over markers: ``x`` the ramp's times tiled once
+    per marker) enter every sum of the fit through three sums per abscissa: the weight S, the
+    weighted data and the weighted squared data. With Ybar their weighted mean,
+    ``sum_s W_s (p(x_s) - Y_s)^2 = sum_k S_k (p(u_k) - Ybar_k)^2 + const``, ``const`` not
+    depending on the curve's parameters, and so do the gradient and the Gauss-Newton matrix: the
+    fit on (u, Ybar, S) takes the same steps on n_distinct instead of n_samples samples.
+
+    x (n,); Y, W (n_curves, n) (W 0 where Y is missing). Returns (x, Y, W, const (n_curves,))
+    grouped, or the inputs and zeros when fewer than half the abscissae repeat.
+    """
+    u, inverse = np.unique(x, return_inverse=True)
+    if 2 * u.size > x.size:
+        return x, Y, W, np.zeros(Y.shape[0])
+    from scipy.sparse import csr_matrix
+
+    G = csr_matrix((np.ones(x.size), (np.arange(x.size), inverse)), shape=(x.size, u.size))
+    WY = W * Y
+    S = np.asarray(W @ G)
+    SY = np.asarray(WY @ G)
+    SYY = np.asarray((WY * Y) @ G)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Ybar = np.where(S > 0, SY / S, 0.0)
+        const = np.sum(np.where(S > 0, SYY - SY * Ybar, 0.0), axis=1)
+    return u, Ybar, S, np.maximum(const, 0.0)
+
+
 def fit_logistic(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *,
                  a0: np.ndarray | None = None, b0: np.ndarray | None = None,
                  max_iter: int = 200, tol: float = 1e-12) -> LogisticFit:
@@ -81,10 +112,12 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *,
     b = np.array(b0 if b0 is not None else gb, float).copy()
     b = np.where(np.isfinite(b), b, np.median(x))
     lam = np.full(y.shape[0], 1e-3)
+    total_w = np.sum(W, axis=1)
+    x, Y, W, const = grouped_samples(x, Y, W)
 
     def cost(a, b):
         r = _model(x, a, b) - Y
-        return np.sum(W * r * r, axis=1)
+        return np.sum(W * r * r, axis=1) + const
 
     c = cost(a, b)
     converged = np.zeros(y.shape[0], bool)
@@ -116,5 +149,5 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *,
         converged |= lam > 1e10
         if converged.all():
             break
-    rms = np.sqrt(c / np.maximum(np.sum(W, axis=1), 1e-300))  # weighted RMS residual
+    rms = np.sqrt(np.maximum(c, 0.0) / np.maximum(total_w, 1e-300))  # weighted RMS residual
     return LogisticFit(a, b, rms, converged)

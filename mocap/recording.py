@@ -49,11 +49,16 @@ def _points_over_time(rec, rr, path, frame, fps, positions, **columns):
     """Send points grouped by frame (rows sorted by frame) as one column batch."""
     if frame.size == 0:
         return
-    order = np.argsort(frame, kind="stable")
-    frame = frame[order]
-    uniq, counts = np.unique(frame, return_counts=True)
+    if np.any(frame[1:] < frame[:-1]):  # most callers pass rows already in frame order
+        order = np.argsort(frame, kind="stable")
+        frame = frame[order]
+        positions = positions[order]
+        columns = {k: v[order] for k, v in columns.items()}
+    # the frames' runs (no second sort, as np.unique would do)
+    starts = np.r_[0, np.flatnonzero(frame[1:] != frame[:-1]) + 1]
+    uniq, counts = frame[starts], np.diff(np.r_[starts, frame.size])
     kind = rr.Points3D if positions.shape[1] == 3 else rr.Points2D
-    cols = kind.columns(positions=positions[order], **{k: v[order] for k, v in columns.items()})
+    cols = kind.columns(positions=positions, **columns)
     rec.send_columns(path, indexes=_times(rr, uniq, fps), columns=cols.partition(lengths=counts))
 
 
@@ -169,17 +174,21 @@ def _log_takes(rec, rr, result, fps, names):
         path = out / "trajectories" / f"{take.name}.parquet"
         if not path.is_file():
             continue
-        df = pd.read_parquet(path, columns=["frame", "x", "y", "z"])
-        n_frames = int(df["frame"].max()) + 1
-        X = df[["x", "y", "z"]].to_numpy().reshape(n_frames, M, 3)
+        kept = result.reconstruction.dense.get(take.name)
+        if kept is not None and kept.X.shape[1] == M:  # the trajectories written, still in memory
+            X = kept.X
+        else:
+            df = pd.read_parquet(path, columns=["frame", "x", "y", "z"])
+            X = df[["x", "y", "z"]].to_numpy().reshape(int(df["frame"].max()) + 1, M, 3)
+        n_frames = X.shape[0]
         ok = np.isfinite(X[..., 0])
         f_idx, m_idx = np.nonzero(ok)
         _points_over_time(rec, rr, f"world/takes/{take.name}/markers", f_idx, fps, X[ok],
                           class_ids=m_idx.astype(np.uint16))
-        strips = [X[ok[:, m], m] for m in range(M) if ok[:, m].sum() >= 2]
+        drawn = np.flatnonzero(ok.sum(axis=0) >= 2)
+        strips = [X[ok[:, m], m] for m in drawn]
         rec.log(f"world/takes/{take.name}/paths",
-                rr.LineStrips3D(strips, radii=0.08, class_ids=[m for m in range(M) if ok[:, m].sum() >= 2]),
-                static=True)
+                rr.LineStrips3D(strips, radii=0.08, class_ids=drawn), static=True)
         if take.commands is not None:
             from mocap.session import command_matrix
 

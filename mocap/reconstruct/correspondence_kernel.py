@@ -19,18 +19,20 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from mocap.calib.distortion_kernel import BLOCK as _BLOCK
+from mocap.calib.distortion_kernel import project_pixel, undistort_rounds
+
 N_CELLS = 64  # column bands per image in the nearest-blob search
-_BLOCK = 256  # blobs undistorted together
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def normalize_blobs(uv, cam, K, dist, R, iterations):
     """Distorted pixels -> undistorted normalised coordinates and world viewing rays.
 
     uv (n, 2) px; cam (n,) int; returns xn (n, 2) and ray (n, 3) unit vectors (world frame).
-    Same fixed-point undistortion as :func:`mocap.calib.camera.undistort_normalized`, run on blocks of
-    blobs (so the iteration vectorises) for at most ``iterations`` rounds, stopping once a round
-    leaves the whole block unchanged (further rounds would change nothing).
+    Same fixed-point undistortion as :func:`mocap.calib.camera.undistort_normalized`, run on blocks
+    of blobs by :func:`mocap.calib.distortion_kernel.undistort_rounds` (vectorised; at most
+    ``iterations`` rounds, stopping once a round leaves the whole block unchanged).
     """
     n = uv.shape[0]
     xn = np.empty((n, 2))
@@ -59,22 +61,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
             p1[p] = dist[c, 2]
             p2[p] = dist[c, 3]
             k3[p] = dist[c, 4]
-        for _ in range(iterations):
-            moved = 0
-            for p in range(m):
-                xp = x[p]
-                yp = y[p]
-                r2 = xp * xp + yp * yp
-                radial = 1.0 + r2 * (k1[p] + r2 * (k2[p] + r2 * k3[p]))
-                dx = 2.0 * p1[p] * xp * yp + p2[p] * (r2 + 2.0 * xp * xp)
-                dy = p1[p] * (r2 + 2.0 * yp * yp) + 2.0 * p2[p] * xp * yp
-                x_new = (x0[p] - dx) / radial
-                y_new = (y0[p] - dy) / radial
-                moved += (x_new != xp) | (y_new != yp)
-                x[p] = x_new
-                y[p] = y_new
-            if moved == 0:
-                break
+        undistort_rounds(x0, y0, x, y, k1, k2, p1, p2, k3, m, iterations)
         for p in range(m):
             i = s + p
             c = cam[i]
@@ -90,7 +77,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
     return xn, ray
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _cell(x, x0, scale):
     """Column band (0 .. N_CELLS - 1) of image x (px) in a bucket whose bands start at ``x0`` px,
     ``1 / scale`` px wide; non-decreasing in x."""
@@ -102,7 +89,7 @@ def _cell(x, x0, scale):
     return int(q)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def bucket_index(cam, fidx, uv, n_cams, n_frames):
     """Blobs grouped by (camera, frame), and sorted by x within each group.
 
@@ -170,7 +157,7 @@ def bucket_index(cam, fidx, uv, n_cams, n_frames):
     return ptr, order, order_x, uv_x, cells, x0, scale
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def compact_buckets(ptr, order, used):
     """The buckets (ptr, order) without their used blobs (used (n_blobs,) bool); the order
     within each bucket is kept."""
@@ -192,7 +179,7 @@ def compact_buckets(ptr, order, used):
     return ptr2, order2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _epipolar_angle(ray, i, bn, e1, e2):
     """Angle (rad, [0, 2 pi]) about the baseline ``bn`` of blob i's epipolar plane."""
     n0 = bn[1] * ray[i, 2] - bn[2] * ray[i, 1]
@@ -202,7 +189,7 @@ def _epipolar_angle(ray, i, bn, e1, e2):
                       n0 * e1[0] + n1 * e1[1] + n2 * e1[2]) + np.pi
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _sort_pairs(keys, idx, n):
     """Sort keys[:n] ascending in place, idx[:n] along (insertion sort below 32 items, where
     most frames' leftover blobs are, to spare an allocation per frame)."""
@@ -224,7 +211,7 @@ def _sort_pairs(keys, idx, n):
         idx[h + 1] = i
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2, E,
                     focal_a, focal_b, gate_px, dth):
     """Blob pairs (pa, pb) of cameras a and b passing the symmetric epipolar test.
@@ -310,28 +297,7 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
     return pa[:m].copy(), pb[:m].copy()
 
 
-@njit(cache=True, inline="always")
-def _project(K, dist, R, t, c, X0, X1, X2):
-    """World point (mm) -> distorted pixel (px) in camera c; NaN behind the camera.
-
-    Same operations as :meth:`mocap.calib.camera.Camera.project`.
-    """
-    xc = X0 * R[c, 0, 0] + X1 * R[c, 0, 1] + X2 * R[c, 0, 2] + t[c, 0]
-    yc = X0 * R[c, 1, 0] + X1 * R[c, 1, 1] + X2 * R[c, 1, 2] + t[c, 1]
-    zc = X0 * R[c, 2, 0] + X1 * R[c, 2, 1] + X2 * R[c, 2, 2] + t[c, 2]
-    if not zc > 0:
-        return np.nan, np.nan
-    x = xc / zc
-    y = yc / zc
-    k1, k2, p1, p2, k3 = dist[c, 0], dist[c, 1], dist[c, 2], dist[c, 3], dist[c, 4]
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return K[c, 0, 0] * xd + K[c, 0, 1] * yd + K[c, 0, 2], K[c, 1, 1] * yd + K[c, 1, 2]
-
-
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _nearest_blob(cells, x0, scale, order_x, uv_x, k, u, v, gate_px):
     """Nearest blob of bucket k to (u, v) px closer than ``gate_px``; -1 if none.
 
@@ -359,7 +325,7 @@ def _nearest_blob(cells, x0, scale, order_x, uv_x, k, u, v, gate_px):
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def verify_candidates(X, pa, pb, a, b, fidx, cells, x0, scale, order_x, uv_x, n_frames, used, K,
                       dist, R, t, gates, max_depth_mm, min_cams, unique_pair):
     """Support of every epipolar candidate in the other cameras.
@@ -391,7 +357,7 @@ def verify_candidates(X, pa, pb, a, b, fidx, cells, x0, scale, order_x, uv_x, n_
         for c in range(C):
             if c == a or c == b:
                 continue
-            u, v = _project(K, dist, R, t, c, X0, X1, X2)
+            u, v = project_pixel(K, dist, R, t, c, X0, X1, X2)
             if not (np.isfinite(u) and np.isfinite(v)):
                 continue
             j = _nearest_blob(cells, x0, scale, order_x, uv_x, c * n_frames + f, u, v, gates[c])
@@ -405,7 +371,7 @@ def verify_candidates(X, pa, pb, a, b, fidx, cells, x0, scale, order_x, uv_x, n_
     return views, keep
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def pair_observations(pa, pb, xn):
     """(2, m, 2) normalised observations of the blob pairs (pa, pb) (m,)."""
     m = pa.size
@@ -418,7 +384,7 @@ def pair_observations(pa, pb, xn):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def gather_observations(views, xn):
     """(C, m, 2) normalised observations of candidate rows views (m, C); NaN where no view."""
     m, C = views.shape
@@ -432,7 +398,7 @@ def gather_observations(views, xn):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def reprojection_errors(X, views, uv, K, dist, R, t):
     """(C, m) distance (px) between each view's blob and the projection of X (m, 3) mm; NaN for
     cameras without a view (or behind which the point lies)."""
@@ -443,14 +409,14 @@ def reprojection_errors(X, views, uv, K, dist, R, t):
             j = views[r, c]
             if j < 0:
                 continue
-            u, v = _project(K, dist, R, t, c, X[r, 0], X[r, 1], X[r, 2])
+            u, v = project_pixel(K, dist, R, t, c, X[r, 0], X[r, 1], X[r, 2])
             du = u - uv[j, 0]
             dv = v - uv[j, 1]
             err[c, r] = np.sqrt(du * du + dv * dv)
     return err
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def candidate_scores(views, err):
     """Score (m,) of candidate rows: 1000 per view minus the RMS reprojection error (px) over
     the views with a finite error (1000 when there is none)."""
@@ -472,7 +438,7 @@ def candidate_scores(views, err):
     return score
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def contested_rows(views, scratch):
     """Mask (m,) of the candidate rows views (m, C) sharing a blob with another row.
 
@@ -495,7 +461,7 @@ def contested_rows(views, scratch):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def one_point_per_blob(views, score, best):
     """Alive mask (m,) keeping, for every blob, only its best-scoring candidate row.
 
@@ -534,7 +500,7 @@ def one_point_per_blob(views, score, best):
     return alive
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def mark_used(views, used):
     """Flag every blob of candidate rows views (m, C) in used (n_blobs,) bool, in place."""
     m, C = views.shape
@@ -544,7 +510,7 @@ def mark_used(views, used):
                 used[views[r, c]] = True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def drop_bad_views(views, err, gates):
     """Views (m, C) without the views whose error err (C, m) px exceeds their camera's gate;
     also returns the mask (m,) of changed rows."""
@@ -559,7 +525,7 @@ def drop_bad_views(views, err, gates):
     return out, changed
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def point_summary(views, err, frame):
     """Per row of views (m, C): number of views, RMS reprojection error (px) over them (NaN if
     any is NaN) and the frame of its blobs."""
