@@ -38,11 +38,16 @@ from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
 
 @dataclass(frozen=True)
 class LabelSettings:
-    link_gate_mm: float = 2.0
-    max_gap_frames: int = 6
-    start_gate_mm: float = 3.0
-    min_presence: float = 0.5
-    template_gate_mm: float = 6.0
+    link_gate_mm: float = field(default=2.0, metadata={
+        "help": "largest motion of a marker from one frame to the next (mm)"})
+    max_gap_frames: int = field(default=6, metadata={
+        "help": "tracklets are joined across gaps of up to this many frames"})
+    start_gate_mm: float = field(default=3.0, metadata={
+        "help": "a new tracklet takes a marker within this distance of its last position (mm)"})
+    min_presence: float = field(default=0.5, metadata={
+        "help": "a marker is present in at least this share of the rest take's frames"})
+    template_gate_mm: float = field(default=6.0, metadata={
+        "help": "a marker takes a markers.csv name within this distance (mm)"})
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,27 @@ class MarkerSet:
     names: tuple[str, ...]
     rest_mm: np.ndarray
     missing_from_template: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class TakeStats:
+    """Counts of one take's reconstruction.
+
+    points: 3D points (raw takes) or reconstructed marker-frames (labeled 3D input);
+    labeled_points: those given a marker; unlabeled_points: ghosts and fragments left out;
+    tracklets: chains of linked points; missing_marker_frames: (frame, marker) pairs not
+    reconstructed; interpolated_marker_frames: gap samples filled (``fill_gaps_frames``);
+    blobs: the take's 2D blobs; matched_blobs: those in a 3D point.
+    """
+
+    points: int
+    labeled_points: int
+    unlabeled_points: int = 0
+    tracklets: int = 0
+    missing_marker_frames: int = 0
+    interpolated_marker_frames: int = 0
+    blobs: int = 0
+    matched_blobs: int = 0
 
 
 @dataclass(frozen=True)
@@ -70,7 +96,7 @@ class LabeledTake:
     n_cameras: np.ndarray
     residual_px: np.ndarray
     interpolated: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: TakeStats
     views: np.ndarray | None = None
     blob_marker: np.ndarray | None = None
 
@@ -182,14 +208,14 @@ def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
     interp = np.zeros((n_frames, M), bool)
     if fill_gaps_frames > 0:
         X, interp = fill_gaps(X, fill_gaps_frames)
-    stats = {
-        "points": int(points.frame.size),
-        "labeled_points": int(sel.sum()),
-        "unlabeled_points": int((~sel).sum()),
-        "tracklets": int(starts.size),
-        "missing_marker_frames": int(np.isnan(X[..., 0]).sum()),
-        "interpolated_marker_frames": int(interp.sum()),
-    }
+    stats = TakeStats(
+        points=int(points.frame.size),
+        labeled_points=int(sel.sum()),
+        unlabeled_points=int((~sel).sum()),
+        tracklets=int(starts.size),
+        missing_marker_frames=int(np.isnan(X[..., 0]).sum()),
+        interpolated_marker_frames=int(interp.sum()),
+    )
     C = points.blob.shape[1]
     views = np.zeros((C, M), np.int64)
     pb = points.blob[sel]

@@ -29,7 +29,7 @@ marker was not reconstructed; the first axis is time.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -41,11 +41,16 @@ NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's sc
 
 @dataclass(frozen=True)
 class RejectionSettings:
-    min_displacement_mm: float = 0.05
-    smooth_s: float = 0.25
-    spread_k: float = 5.0
-    spread_ratio: float = 2.0
-    max_gap_fraction: float = 0.05
+    min_displacement_mm: float = field(default=0.05, metadata={
+        "help": "a marker moving less than this for a DU is left out of its analysis (mm)"})
+    smooth_s: float = field(default=0.25, metadata={
+        "help": "centred window over which the peak displacement is taken (s)"})
+    spread_k: float = field(default=5.0, metadata={
+        "help": "abnormal across-trial spread: above the median + this many scaled MADs"})
+    spread_ratio: float = field(default=2.0, metadata={
+        "help": "... and above this many times the median spread"})
+    max_gap_fraction: float = field(default=0.05, metadata={
+        "help": "a marker missing from more than this share of response frames is left out"})
 
 
 @dataclass(frozen=True)
