@@ -18,13 +18,20 @@ Subpackages: ``mocap.calib`` (camera models, wand calibration), ``mocap.reconstr
 Units everywhere: millimetres (mm), pixels (px), seconds (s), command units (integers 0..255).
 """
 
+import sys
+import types
+
 __version__ = "0.1.0"
 
 __all__ = ["load_session", "calibrate", "reconstruct", "analyze", "run", "RunSettings"]
 
 
 def __getattr__(name: str):
-    if name in ("load_session", "calibrate", "reconstruct", "analyze", "run"):
+    if name == "reconstruct":  # the subpackage, callable (see _ReconstructPackage)
+        import mocap.reconstruct
+
+        return mocap.reconstruct
+    if name in ("load_session", "calibrate", "analyze", "run"):
         from mocap import api
 
         return getattr(api, name)
@@ -37,3 +44,24 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted(list(globals()) + __all__)
+
+
+class _ReconstructPackage(types.ModuleType):
+    """``mocap.reconstruct`` is both the reconstruction subpackage (``mocap.reconstruct.labeling``
+    ...) and the API's stage function: calling the package runs :func:`mocap.api.reconstruct`."""
+
+    def __call__(self, session, calibration=None, **kwargs):
+        from mocap import api
+
+        return api.reconstruct(session, calibration, **kwargs)
+
+
+class _Package(types.ModuleType):
+    def __setattr__(self, name: str, value) -> None:
+        # the import system binds the subpackage here when it is first imported
+        if name == "reconstruct" and isinstance(value, types.ModuleType):
+            value.__class__ = _ReconstructPackage
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
