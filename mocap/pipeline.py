@@ -133,7 +133,8 @@ class RunResult:
     reconstruction : every face take's labeled trajectories; trials : averages, responses,
     rejections; analysis : ``SessionAnalysis`` (None for an audit-only run or without response
     takes); audit : the audit report (audit.json); summary : summary.json; out_dir : the output
-    folder (None: nothing was written); reused : the stages taken from an earlier run.
+    folder (None: nothing was written); reused, computed : the stages taken from an earlier run
+    in ``out_dir`` and those computed (``reconstruct (k of n takes)`` for part of the takes).
     """
 
     session: Session
@@ -146,6 +147,7 @@ class RunResult:
     summary: Mapping
     out_dir: Path | None = None
     reused: tuple[str, ...] = ()
+    computed: tuple[str, ...] = ()
 
     @property
     def averages(self) -> tuple[TrialAverage, ...]:
@@ -573,10 +575,11 @@ class _Composer:
             s = tr.labeled.stats
             self.say(f"  {tr.name}: {s.labeled_points} labeled points, "
                      f"{s.missing_marker_frames} marker-frames missing")
+        n_reused = len(face) - len(todo)
+        if n_reused:
+            self.reused.append(f"reconstruct ({n_reused} of {len(face)} takes)")
         if todo:
             self.computed.append(f"reconstruct ({len(todo)} of {len(face)} takes)")
-        else:
-            self.reused.append(f"reconstruct ({len(face)} takes)")
         self.timings["reconstruct_s"] = time.perf_counter() - t
         return assemble(session, markers, done)
 
@@ -642,15 +645,15 @@ class _Composer:
                 f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
         if self.reused:
             say(f"reused from the earlier run in {out}: {', '.join(self.reused)}")
-            if self.computed:
-                say(f"recomputed: {', '.join(self.computed)}")
+            say(f"computed: {', '.join(self.computed) or 'nothing'}")
         self.timings["total_s"] = time.perf_counter() - t0
         summary = self.summary(stages, recon, trials, analysis, calibration, audit)
         if out is not None:
             write_text(out / "summary.json", json.dumps(summary, indent=2))
             if self.store is not None:
                 self.store.fingerprints.save()
-        return replace(result, summary=summary, reused=tuple(self.reused))
+        return replace(result, summary=summary, reused=tuple(self.reused),
+                       computed=tuple(self.computed))
 
     def summary(self, stages, recon, trials, analysis, calibration, audit) -> dict:
         session = self.session
@@ -669,6 +672,7 @@ class _Composer:
             "versions": _versions(),
             "settings": to_dict(self.settings),
             "reused": self.reused,
+            "computed": self.computed,
             "timings_s": self.timings,
             "counts": counts,
             "warnings": warnings_list,

@@ -136,6 +136,7 @@ class RunStore:
         self.root = Path(out_dir) / STATE_DIR
         self.force = force
         self.fingerprints = Fingerprints(self.root / "fingerprints.json")
+        self.removed = remove_partial_files(Path(out_dir))
 
     # --- whole stages --------------------------------------------------------------------
     def load(self, stage: str, key: str, outputs=()) -> tuple[bool, Any]:
@@ -164,6 +165,18 @@ class RunStore:
     def save_take(self, name: str, key: str, value: Any) -> None:
         """The take's counts; written before its trajectories file (which commits the take)."""
         _save_pickle(self.root / "takes" / f"{name}.pkl", key, value)
+
+
+def remove_partial_files(out_dir: Path) -> int:
+    """Remove the temporary files a killed run left (``mocap.atomic``'s ``.<name>.*.tmp``);
+    call only while holding the folder's lock. Returns how many."""
+    n = 0
+    for sub in ("", "trajectories", "figures", STATE_DIR, f"{STATE_DIR}/stages", f"{STATE_DIR}/takes"):
+        for path in (out_dir / sub).glob(".*.tmp"):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+                n += 1
+    return n
 
 
 def _load_pickle(path: Path, key: str) -> tuple[bool, Any]:

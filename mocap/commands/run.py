@@ -90,5 +90,6 @@ def run(args: argparse.Namespace) -> int:
           f"{s['counts']['rows']} face-take rows; stages: {', '.join(s['stages'])}; "
           f"results in {result.out_dir}")
     if result.reused:
-        print(f"reused from the earlier run: {', '.join(result.reused)}")
+        print(f"reused from the earlier run: {', '.join(result.reused)}; "
+              f"computed: {', '.join(result.computed) or 'nothing'}")
     return 0
