@@ -215,6 +215,7 @@ def test_config_file_then_flags_and_effective_settings_in_summary(tmp_path, caps
     assert s["reconstruction"]["min_cameras"] == 2
     assert s["labels"] == dataclasses.asdict(RunSettings().labels)  # defaults elsewhere
     assert not (tmp_path / "out" / "session.rrd").exists()
+    assert json.loads((tmp_path / "out" / "audit.json").read_text())["min_cameras"] == 2
     rej = pd.read_csv(tmp_path / "out" / "rejections.csv")
     assert (rej.loc[rej["reason"] == "small_displacement", "threshold"] == 0.08).all()
     # errors name the key and the file
@@ -236,3 +237,22 @@ def test_settings_by_bare_name_section_or_dotted_key():
         with_values(RunSettings(), {"min_cameras": 1})
     with pytest.raises(ValueError, match="record_blobs"):
         RunSettings(record_blobs="some")
+
+
+def test_progress_bars_when_asked_or_on_a_terminal_and_quiet_is_silent(tmp_path, capsys):
+    from mocap.cli import main
+
+    root = make_session(tmp_path / "lab", du_ids=(4,), n_trials=2, n_markers=12,
+                        motion_plans=(), battery=False, labeled=True, seed=9)
+    session = mocap.load_session(root / "session")
+    mocap.run(session, bars=True, bootstrap_samples=0)
+    err = capsys.readouterr().err
+    assert "reconstructing takes" in err and "0/3 [" in err
+    mocap.run(session, bars=None, bootstrap_samples=0)  # stderr is not a terminal here
+    assert "reconstructing takes" not in capsys.readouterr().err
+    assert main(["run", str(root / "session"), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert cap.err == "" and "results in" in cap.out
+    assert main(["run", str(root / "session"), "--out", str(tmp_path / "out2")]) == 0
+    err = capsys.readouterr().err
+    assert "reconstructing takes" not in err and "markers" in err  # messages, no bar

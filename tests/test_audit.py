@@ -62,3 +62,20 @@ def test_labeled_session_audit(tmp_path):
     nose = next(m for m in a["markers"] if m["marker"] == truth["nose_bridge_marker"])
     assert nose["gaps"] > 0 and nose["verdict"] != "pass"
     assert res.summary["audit"]["verdict"] in ("pass", "warn")
+
+
+def test_audit_judges_markers_by_the_runs_min_cameras():
+    """A marker seen by 2 cameras passes a --min-cameras 2 run and fails a 3-camera one."""
+    import numpy as np
+
+    from mocap.audit import audit_capture
+    from mocap.reconstruct.labeling import MarkerSet
+    from mocap.reconstruct.takes import CaptureCounts, Reconstruction
+
+    views = np.array([[90, 90, 90], [90, 90, 0], [90, 0, 0], [0, 0, 0]])  # (camera, marker)
+    cap = CaptureCounts(np.full(3, 90), 100, np.zeros(3, int), np.zeros(3, int), views=views)
+    recon = Reconstruction(MarkerSet(("a", "b", "c"), np.zeros((3, 3))), {}, cap, None, None, {})
+    for k, expected in ((3, ["pass", "fail", "fail"]), (2, ["pass", "pass", "fail"])):
+        a = audit_capture("s", None, recon, (), None, min_cameras=k)
+        assert [m["verdicts"]["cameras"] for m in a["markers"]] == expected
+        assert [m["cameras"] for m in a["markers"]] == [3, 2, 1]
