@@ -587,6 +587,9 @@ class _Composer:
         session, settings, out, say = self.session, self.settings, self.out, self.say
         t0 = time.perf_counter()
         say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
+        changed = self.changed_settings()
+        if changed:
+            say(f"settings changed since the last run in {out}: {changed}")
         # the manifest, the take headers and every command file are checked here; each take's
         # rows are validated by the stage that reads them (read once)
         t = time.perf_counter()
@@ -654,6 +657,26 @@ class _Composer:
                 self.store.fingerprints.save()
         return replace(result, summary=summary, reused=tuple(self.reused),
                        computed=tuple(self.computed))
+
+    def changed_settings(self) -> str:
+        """The settings that differ from the last run's summary.json, as text ('' if none)."""
+        if self.out is None or not (self.out / "summary.json").is_file():
+            return ""
+        try:
+            before = json.loads((self.out / "summary.json").read_text()).get("settings") or {}
+        except ValueError:
+            return ""
+
+        def flat(d, prefix=""):
+            for k, v in d.items():
+                if isinstance(v, dict):
+                    yield from flat(v, f"{prefix}{k}.")
+                else:
+                    yield f"{prefix}{k}", v
+
+        old, new = dict(flat(before)), dict(flat(to_dict(self.settings)))
+        return ", ".join(f"{k} {old[k]!r} -> {v!r}" for k, v in new.items()
+                         if k in old and old[k] != v and k != "jobs")
 
     def summary(self, stages, recon, trials, analysis, calibration, audit) -> dict:
         session = self.session

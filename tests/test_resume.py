@@ -73,7 +73,9 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
 def test_analysis_setting_change_reuses_the_reconstruction(tiny_sim, tiny_run, copy_of_run, capsys):
     before = stamps(copy_of_run / "trajectories")
     mocap_run(tiny_sim / "session", copy_of_run, "--bootstrap-samples", "20")
-    line = reused_line(capsys.readouterr().out)
+    cap = capsys.readouterr()
+    assert "settings changed since the last run" in cap.err and "bootstrap_samples 200 -> 20" in cap.err
+    line = reused_line(cap.out)
     assert line == ("reused from the earlier run: calibrate, markers, reconstruct (6 of 6 takes), "
                     "trials, audit; computed: analyze")
     assert stamps(copy_of_run / "trajectories") == before
@@ -112,6 +114,14 @@ def test_changed_take_file_recomputes_that_take_only(tiny_sim, tiny_run, copy_of
     for name in ("du04_t01.parquet", "rest.parquet"):
         pd.testing.assert_frame_equal(pd.read_parquet(copy_of_run / "trajectories" / name),
                                       pd.read_parquet(tiny_run / "trajectories" / name))
+
+
+def test_keys_follow_content_not_paths_or_times(tiny_sim, copy_of_run, tmp_path, capsys):
+    session = tmp_path / "elsewhere" / "session"
+    shutil.copytree(tiny_sim / "session", session)
+    os.utime(session / "takes" / "du04_t01.parquet", (1e9, 1e9))  # touched, same bytes
+    mocap_run(session, copy_of_run)
+    assert reused_line(capsys.readouterr().out).endswith("computed: nothing")
 
 
 def test_force_recomputes_everything(tmp_path, capsys):
