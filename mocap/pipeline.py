@@ -30,7 +30,6 @@ import pandas as pd
 
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
-from mocap.reconstruct.correspondence import reconstruct_points
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
 from mocap.reconstruct.labeling import MarkerSet, identify_markers, trajectories_frame
 from mocap.reconstruct.takes import (
@@ -221,6 +220,8 @@ def find_markers(session: Session, calibration=None, settings: RunSettings = Run
         if rest is None:
             raise SessionError(f"{session.root}/session.toml: a raw session needs a 'rest' take "
                                "to find its markers")
+        from mocap.reconstruct.correspondence import reconstruct_points
+
         blobs = session.read_take(rest.name)
         pts = reconstruct_points(blobs, calibration.rig, calibration.quality, settings.reconstruction)
         return identify_markers(pts, take_frame_count(blobs), session.marker_template,

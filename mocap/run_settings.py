@@ -24,9 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from mocap.reconstruct.correspondence import ReconstructionSettings
-from mocap.reconstruct.labeling import LabelSettings
-from mocap.reconstruct.trials import RejectionSettings
+from mocap.reconstruct.settings import LabelSettings, ReconstructionSettings, RejectionSettings
 
 RECORD_BLOBS = ("subset", "all", "none")
 

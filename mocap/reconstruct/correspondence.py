@@ -25,7 +25,7 @@ searches) the tests compare this one against.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
@@ -36,22 +36,9 @@ import pyarrow.compute as pc
 from mocap.calib.camera import CameraRig, camera_index
 from mocap.calib.triangulation_kernel import triangulate_normalized
 from mocap.reconstruct import correspondence_kernel as kern
+from mocap.reconstruct.settings import ReconstructionSettings  # noqa: F401  (its home before)
 
 _UNDISTORT_ITERATIONS = 20  # as mocap.calib.camera.undistort_normalized
-
-
-@dataclass(frozen=True)
-class ReconstructionSettings:
-    """Knobs of the correspondence search (px, mm)."""
-
-    min_cameras: int = field(default=3, metadata={
-        "help": "cameras a 3D point needs (3 as the paper; 2 is the minimum)"})
-    gate_min_px: float = field(default=0.75, metadata={
-        "help": "smallest epipolar and reprojection gate of a camera (px)"})
-    gate_sigmas: float = field(default=6.0, metadata={
-        "help": "a camera's gate in units of its calibration reprojection RMS"})
-    max_depth_mm: float = field(default=5000.0, metadata={
-        "help": "points farther than this from a camera are rejected (mm)"})
 
 
 @dataclass(frozen=True)

@@ -23,31 +23,19 @@ descending, rounded to 0.5 mm) then x ascending.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
-from mocap.reconstruct.correspondence import Points3D
-from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
+from mocap.reconstruct.settings import LabelSettings
 
+if TYPE_CHECKING:
+    from mocap.reconstruct.correspondence import Points3D
 
-@dataclass(frozen=True)
-class LabelSettings:
-    link_gate_mm: float = field(default=2.0, metadata={
-        "help": "largest motion of a marker from one frame to the next (mm)"})
-    max_gap_frames: int = field(default=6, metadata={
-        "help": "tracklets are joined across gaps of up to this many frames"})
-    start_gate_mm: float = field(default=3.0, metadata={
-        "help": "a new tracklet takes a marker within this distance of its last position (mm)"})
-    min_presence: float = field(default=0.5, metadata={
-        "help": "a marker is present in at least this share of the rest take's frames"})
-    template_gate_mm: float = field(default=6.0, metadata={
-        "help": "a marker takes a markers.csv name within this distance (mm)"})
+# The compiled kernels and scipy's solvers are imported by the functions that use them, so that
+# the result types below load without them (a reused run reads them back from its cache).
 
 
 @dataclass(frozen=True)
@@ -106,6 +94,8 @@ def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = L
 
     frame (n,) int; X (n, 3) mm. Tracklets are numbered in order of their lowest point index.
     """
+    from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
+
     n = frame.size
     if n == 0:
         return np.zeros(0, np.int64)
@@ -127,6 +117,11 @@ def _tracklet_table(frame, X, comp):
 def identify_markers(points: Points3D, n_frames: int, template: pd.DataFrame | None = None,
                      settings: LabelSettings = LabelSettings()) -> MarkerSet:
     """The markers of a session from its rest take (see the module docstring)."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     comp = link_tracklets(points.frame, points.X, settings)
     order, starts, ends = _tracklet_table(points.frame, points.X, comp)
     # merge tracklets of one still marker split by gaps: cluster their medians
@@ -171,6 +166,8 @@ def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
 
     ``n_blobs`` (the take's blob count) enables ``blob_marker``, each blob's marker label.
     """
+    from scipy.optimize import linear_sum_assignment
+
     M = len(markers.names)
     X = np.full((n_frames, M, 3), np.nan)
     ncam = np.zeros((n_frames, M), np.int64)

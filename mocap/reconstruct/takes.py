@@ -18,8 +18,8 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
-from mocap.reconstruct.correspondence import ReconstructionSettings, blob_camera_index, reconstruct_points
-from mocap.reconstruct.labeling import LabeledTake, LabelSettings, MarkerSet, TakeStats, label_take
+from mocap.reconstruct.labeling import LabeledTake, MarkerSet, TakeStats
+from mocap.reconstruct.settings import LabelSettings, ReconstructionSettings
 
 
 def _readonly(*arrays):
@@ -148,6 +148,10 @@ def reconstruct_take(name: str, blobs: pd.DataFrame, rig, quality: dict, markers
     Independent of every other take once the rig is calibrated and the markers are known (the
     composer runs takes in parallel). ``record``: keep each blob's role for the recording.
     """
+    # the compiled correspondence search is imported here: the result types above load without it
+    from mocap.reconstruct.correspondence import blob_camera_index, reconstruct_points
+    from mocap.reconstruct.labeling import label_take
+
     n_frames = take_frame_count(blobs)
     pts = reconstruct_points(blobs, rig, quality, reconstruction)
     lab = label_take(pts, markers, n_frames, labels, fill_gaps_frames, n_blobs=len(blobs))

@@ -29,28 +29,15 @@ marker was not reconstructed; the first axis is time.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
 from mocap.analysis.displacement import normalized, normalized_along, peak_length, principal_direction
+from mocap.reconstruct.settings import RejectionSettings
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
-
-
-@dataclass(frozen=True)
-class RejectionSettings:
-    min_displacement_mm: float = field(default=0.05, metadata={
-        "help": "a marker moving less than this for a DU is left out of its analysis (mm)"})
-    smooth_s: float = field(default=0.25, metadata={
-        "help": "centred window over which the peak displacement is taken (s)"})
-    spread_k: float = field(default=5.0, metadata={
-        "help": "abnormal across-trial spread: above the median + this many scaled MADs"})
-    spread_ratio: float = field(default=2.0, metadata={
-        "help": "... and above this many times the median spread"})
-    max_gap_fraction: float = field(default=0.05, metadata={
-        "help": "a marker missing from more than this share of response frames is left out"})
 
 
 @dataclass(frozen=True)
