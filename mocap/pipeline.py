@@ -177,7 +177,12 @@ class RunResult:
     def arrays(self) -> dict[str, np.ndarray]:
         """Take name -> (n_frames, n_markers, 3) marker positions, mm (NaN: not seen); markers in
         ``markers`` order. Read-only views of the reconstruction."""
-        return {name: lab.X for name, lab in self.reconstruction.takes.items()}
+        def view(X: np.ndarray) -> np.ndarray:
+            v = X.view()
+            v.flags.writeable = False
+            return v
+
+        return {name: view(lab.X) for name, lab in self.reconstruction.takes.items()}
 
     @property
     def trajectories(self) -> pd.DataFrame:

@@ -121,6 +121,8 @@ def test_results_are_frozen(tiny_sim):
             setattr(obj, attr, None)
     with pytest.raises(ValueError):  # counts are read-only arrays
         result.reconstruction.capture.marker_frames[0] = 0
+    with pytest.raises(ValueError):
+        result.arrays["rest"][0, 0, 0] = 0.0
     # tidy trajectories and arrays agree
     traj = result.trajectories
     assert list(traj.columns[:6]) == ["take", "frame", "marker", "x", "y", "z"]
