@@ -35,10 +35,11 @@ from mocap.reconstruct.labeling import MarkerSet, identify_markers, trajectories
 from mocap.reconstruct.takes import (
     BlobRoles,
     CaptureCounts,
+    LazyTakes,
     Reconstruction,
     TakeReconstruction,
     labeled_take,
-    labeled_take_from_frame,
+    labeled_take_from_table,
     reconstruct_take,
     take_frame_count,
 )
@@ -290,20 +291,26 @@ def _map_takes(session, names: list[str], calibration, markers, settings: RunSet
             yield fut.result()
 
 
-def assemble(session: Session, markers: MarkerSet, takes: Mapping[str, TakeReconstruction]
-             ) -> Reconstruction:
+def assemble(session: Session, markers: MarkerSet, takes: Mapping[str, TakeReconstruction],
+             stored: Mapping[str, tuple] | None = None) -> Reconstruction:
     """The session's Reconstruction from its takes' (in session order); the noise floor from
-    the rest take."""
-    order = [t.name for t in session.takes if t.name in takes]
-    caps = [takes[n].capture for n in order]
+    the rest take. ``stored``: takes of an earlier run, name -> (loader of its LabeledTake,
+    stats, capture, roles), read only when asked for."""
+    stored = stored or {}
+    order = [t.name for t in session.takes if t.name in takes or t.name in stored]
+    part = {n: (lambda tr=takes[n]: tr.labeled, takes[n].labeled.stats, takes[n].capture,
+                takes[n].roles) if n in takes else stored[n] for n in order}
+    caps = [part[n][2] for n in order]
     M = len(markers.names)
     capture = sum(caps[1:], caps[0]) if caps else CaptureCounts.of_take(np.zeros((0, M), bool))
+    labeled = LazyTakes({n: part[n][0] for n in order}) if stored else \
+        {n: takes[n].labeled for n in order}
     rest = _rest_take(session)
     noise, noise_mean = None, None
-    if rest is not None and rest.name in takes:
-        noise, noise_mean = noise_floor(takes[rest.name].labeled.X)
-    roles: dict[str, BlobRoles] = {n: takes[n].roles for n in order if takes[n].roles is not None}
-    return Reconstruction(markers, {n: takes[n].labeled for n in order}, capture, noise_mean,
+    if rest is not None and rest.name in labeled:
+        noise, noise_mean = noise_floor(labeled[rest.name].X)
+    roles: dict[str, BlobRoles] = {n: part[n][3] for n in order if part[n][3] is not None}
+    return Reconstruction(markers, labeled, {n: part[n][1] for n in order}, capture, noise_mean,
                           noise, roles)
 
 
@@ -463,17 +470,22 @@ def _write_take(out: Path, store, key: str, tr: TakeReconstruction, names) -> No
     write_keyed_parquet(trajectories_frame(tr.labeled, names), path, key)
 
 
-def _load_take(out: Path, store, key: str, name: str, names) -> TakeReconstruction | None:
+def _stored_take(out: Path, store, key: str, name: str, names) -> tuple | None:
+    """A take finished by an earlier run with ``key``: (loader of its LabeledTake, stats,
+    capture, roles), or None."""
     path = out / "trajectories" / f"{name}.parquet"
     hit, saved = store.load_take(name, key, path)
     if not hit:
         return None
     stats, capture, roles = saved
-    try:
-        lab = labeled_take_from_frame(pd.read_parquet(path), names, stats, capture.views)
-    except (ValueError, KeyError, OSError):
-        return None
-    return TakeReconstruction(name, lab, capture, roles)
+
+    def load():
+        import pyarrow.parquet as pq
+
+        return labeled_take_from_table(pq.read_table(path, read_dictionary=["marker"]), names,
+                                       stats, capture.views)
+
+    return load, stats, capture, roles
 
 
 # --- the composer ----------------------------------------------------------------------------
@@ -563,14 +575,15 @@ class _Composer:
         self.say(f"{len(names)} markers" + (" found on the rest take" if session.dimension == "2d" else ""))
         face = [t.name for t in session.takes if t.kind in FACE_KINDS]
         done: dict[str, TakeReconstruction] = {}
+        stored: dict[str, tuple] = {}
         if store is not None:
             for name in face:
-                tr = _load_take(out, store, self.keys.takes[name], name, names)
-                if tr is not None:
-                    done[name] = tr
-        todo = [n for n in face if n not in done]
-        if done:
-            self.say(f"reusing {len(done)} of {len(face)} reconstructed takes"
+                st = _stored_take(out, store, self.keys.takes[name], name, names)
+                if st is not None:
+                    stored[name] = st
+        todo = [n for n in face if n not in stored]
+        if stored:
+            self.say(f"reusing {len(stored)} of {len(face)} reconstructed takes"
                      + (f"; reconstructing {len(todo)}" if todo else ""))
         for tr in _bar(_map_takes(session, todo, calibration, markers, settings,
                                   _recorded(session, settings)), len(todo),
@@ -587,7 +600,7 @@ class _Composer:
         if todo:
             self.computed.append(f"reconstruct ({len(todo)} of {len(face)} takes)")
         self.timings["reconstruct_s"] = time.perf_counter() - t
-        return assemble(session, markers, done)
+        return assemble(session, markers, done, stored)
 
     def run(self) -> RunResult:
         session, settings, out, say = self.session, self.settings, self.out, self.say

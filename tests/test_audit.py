@@ -74,7 +74,7 @@ def test_audit_judges_markers_by_the_runs_min_cameras():
 
     views = np.array([[90, 90, 90], [90, 90, 0], [90, 0, 0], [0, 0, 0]])  # (camera, marker)
     cap = CaptureCounts(np.full(3, 90), 100, np.zeros(3, int), np.zeros(3, int), views=views)
-    recon = Reconstruction(MarkerSet(("a", "b", "c"), np.zeros((3, 3))), {}, cap, None, None, {})
+    recon = Reconstruction(MarkerSet(("a", "b", "c"), np.zeros((3, 3))), {}, {}, cap, None, None, {})
     for k, expected in ((3, ["pass", "fail", "fail"]), (2, ["pass", "pass", "fail"])):
         a = audit_capture("s", None, recon, (), None, min_cameras=k)
         assert [m["verdicts"]["cameras"] for m in a["markers"]] == expected

@@ -68,6 +68,20 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
     same_outputs(copy_of_run, tiny_run)
     summary = json.loads((copy_of_run / "summary.json").read_text())
     assert summary["computed"] == [] and "audit" in summary["reused"]
+    # the library call reads the reused results back, each take when asked for
+    from mocap.pipeline import RunSettings, run_session
+    from mocap.reconstruct.takes import LazyTakes
+
+    res = run_session(tiny_sim / "session", copy_of_run, settings=RunSettings(jobs=1, recording=False))
+    assert res.computed == () and isinstance(res.reconstruction.takes, LazyTakes)
+    for take, X in res.arrays.items():
+        ref = pd.read_parquet(tiny_run / "trajectories" / f"{take}.parquet")
+        np.testing.assert_array_equal(X.reshape(-1, 3), ref[["x", "y", "z"]].to_numpy())
+        lab = res.reconstruction.takes[take]
+        np.testing.assert_array_equal(lab.n_cameras.ravel(), ref["n_cameras"].to_numpy())
+        np.testing.assert_array_equal(lab.interpolated.ravel(), ref["interpolated"].to_numpy())
+    pd.testing.assert_frame_equal(res.properties.reset_index(drop=True),
+                                  pd.read_csv(tiny_run / "properties.csv"), check_dtype=False)
 
 
 def test_analysis_setting_change_reuses_the_reconstruction(tiny_sim, tiny_run, copy_of_run, capsys):

@@ -13,7 +13,7 @@ Shapes: ``n_frames`` (frames of the take), ``n_markers`` (the session's markers)
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Mapping
+from typing import Callable, Iterator, Mapping
 
 import numpy as np
 import pandas as pd
@@ -93,11 +93,32 @@ class TakeReconstruction:
     roles: BlobRoles | None = None
 
 
+class LazyTakes(Mapping):
+    """Take name -> LabeledTake, each made by its loader on first access and then kept (a
+    reused run reads a take's trajectories back only when something asks for them)."""
+
+    def __init__(self, loaders: Mapping[str, Callable[[], LabeledTake]]):
+        self._loaders = dict(loaders)
+        self._loaded: dict[str, LabeledTake] = {}
+
+    def __getitem__(self, name: str) -> LabeledTake:
+        if name not in self._loaded:
+            self._loaded[name] = self._loaders[name]()
+        return self._loaded[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._loaders)
+
+    def __len__(self) -> int:
+        return len(self._loaders)
+
+
 @dataclass(frozen=True)
 class Reconstruction:
     """A session's face takes (rest, response, motion) as labeled trajectories.
 
-    markers : the session's markers; takes : take name -> LabeledTake, in session order;
+    markers : the session's markers; takes : take name -> LabeledTake, in session order (a
+    ``LazyTakes`` when read back from an earlier run); stats : take name -> its counts;
     capture : counts summed over the takes; noise_per_marker_mm : (n_markers, 3) per-axis sd
     over the rest take (None without one), noise_floor_mm its mean; blob_roles : take -> roles,
     for the takes the recording shows.
@@ -105,15 +126,11 @@ class Reconstruction:
 
     markers: MarkerSet
     takes: Mapping[str, LabeledTake]
+    stats: Mapping[str, TakeStats]
     capture: CaptureCounts
     noise_floor_mm: float | None
     noise_per_marker_mm: np.ndarray | None
     blob_roles: Mapping[str, BlobRoles]
-
-    @property
-    def stats(self) -> dict[str, TakeStats]:
-        """Take name -> its counts."""
-        return {name: lab.stats for name, lab in self.takes.items()}
 
     @property
     def labeled_points(self) -> int:
@@ -177,17 +194,27 @@ def labeled_take(name: str, lab: LabeledTake) -> TakeReconstruction:
     return TakeReconstruction(name, lab, CaptureCounts.of_take(np.isnan(lab.X[..., 0])))
 
 
-def labeled_take_from_frame(df: pd.DataFrame, names, stats: TakeStats,
-                            views: np.ndarray | None) -> LabeledTake:
+def labeled_take_from_table(table, names, stats: TakeStats, views: np.ndarray | None) -> LabeledTake:
     """The inverse of :func:`mocap.reconstruct.labeling.trajectories_frame`: a trajectories
-    table (frame-major, markers in ``names`` order in every frame) back to a LabeledTake."""
+    table (a ``pyarrow.Table``, frame-major, the markers in ``names`` order in every frame) back
+    to a LabeledTake, without going through pandas."""
     M = len(names)
-    if len(df) % max(M, 1) or not np.array_equal(
-            df["marker"].to_numpy()[:M].astype(str), np.asarray(names, dtype=str)):
-        raise ValueError(f"expected a trajectories table of the markers {list(names)[:5]}..., "
-                         f"got {len(df)} rows starting {list(df['marker'][:5])}")
-    n = len(df) // M
-    X = df[["x", "y", "z"]].to_numpy(np.float64).reshape(n, M, 3)
-    return LabeledTake(X, df["n_cameras"].to_numpy(np.int64).reshape(n, M),
-                       df["residual_px"].to_numpy(np.float64).reshape(n, M),
-                       df["interpolated"].to_numpy(bool).reshape(n, M), stats, views)
+    marker = table.column("marker").combine_chunks()
+    if hasattr(marker, "dictionary"):  # read with read_dictionary=["marker"]: compare codes
+        codes = marker.indices.to_numpy(zero_copy_only=False)
+        labels = np.asarray(marker.dictionary.to_pylist(), dtype=object)
+    else:
+        labels, codes = np.unique(np.asarray(marker.to_pylist(), dtype=object), return_inverse=True)
+    n = len(codes) // max(M, 1)
+    if M == 0 or len(codes) != n * M or not np.array_equal(labels[codes[:M]].astype(str),
+                                                           np.asarray(names, dtype=str)) \
+            or not (codes.reshape(n, M) == codes[:M]).all():
+        raise ValueError(f"expected a trajectories table of the markers {list(names)[:5]}... in "
+                         f"every frame, got {len(codes)} rows")
+
+    def col(name, dtype):
+        return table.column(name).to_numpy().astype(dtype, copy=False).reshape(n, M)
+
+    X = np.stack([col(c, np.float64) for c in "xyz"], axis=-1)
+    return LabeledTake(X, col("n_cameras", np.int64), col("residual_px", np.float64),
+                       col("interpolated", bool), stats, views)
