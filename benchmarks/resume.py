@@ -54,6 +54,8 @@ def killed_then_resumed(session: Path, out: Path, n_takes: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--session", type=Path, default=HERE.parent / "sample_data" / "session")
+    ap.add_argument("--unchanged-only", action="store_true",
+                    help="only the first run and the unchanged rerun (printed, not saved)")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="mocap-resume-"))
     try:
@@ -61,6 +63,10 @@ def main() -> None:
         first, _ = timed(args.session, out)
         n_takes = len(list((out / "trajectories").glob("*.parquet")))
         unchanged, said = timed(args.session, out)
+        if args.unchanged_only:
+            print(f"first {first:.1f} s, unchanged rerun {unchanged:.1f} s "
+                  f"({unchanged / first:.3f} x): {said}")
+            return
         analysis, said_analysis = timed(args.session, out, "--bootstrap-samples", "100")
         resumed = killed_then_resumed(args.session, work / "killed", n_takes)
     finally:
