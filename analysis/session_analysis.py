@@ -7,7 +7,8 @@ pipeline writes them (properties.csv, linearity.csv, marker_properties.csv, figu
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Mapping, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -41,17 +42,35 @@ PROPERTY_COLUMNS = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bw
 ALONG_PATH = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis")
 
 
-@dataclass
+class MotionResult(NamedTuple):
+    """A motion take played from a plan, evaluated against the plan's ideal."""
+
+    take: str
+    plan: str
+    evaluation: MotionEvaluation
+
+
+@dataclass(frozen=True)
 class SessionAnalysis:
+    """The paper's analyses of a session.
+
+    properties : one row per DU (properties.csv); linearity : per (DU, marker) (linearity.csv);
+    marker_properties : per (DU, marker) fits; du : DU -> its DUProperties; keep : DU -> (M,)
+    bool, markers not rejected; fitted : DU -> (M,) bool, markers in the response fits;
+    fields_mm : DU -> (M, 3) mean displacement at full command (mm); motions : the motion takes
+    evaluated against their plans (``evaluate_plan_take``), added by the composer; paper : DU ->
+    its PaperIndices (the paper's recipe, ``mocap.analysis.paper_indices``).
+    """
+
     properties: pd.DataFrame
     linearity: pd.DataFrame
     marker_properties: pd.DataFrame
-    du: dict = field(default_factory=dict)  # du -> DUProperties (along-path estimator)
-    paper: dict = field(default_factory=dict)  # du -> PaperIndices (the paper's recipe)
-    keep: dict = field(default_factory=dict)  # du -> (M,) bool, not rejected
-    fitted: dict = field(default_factory=dict)  # du -> (M,) bool, in the response fits
-    fields_mm: dict = field(default_factory=dict)  # du -> (M, 3) displacement at full command
-    motions: list = field(default_factory=list)  # (take, plan, MotionEvaluation)
+    du: Mapping  # du -> DUProperties (the along-path estimator)
+    keep: Mapping[int, np.ndarray]
+    fitted: Mapping[int, np.ndarray]
+    fields_mm: Mapping[int, np.ndarray]
+    motions: tuple[MotionResult, ...] = ()
+    paper: Mapping | None = None  # du -> PaperIndices (the paper's recipe, mocap.analysis.paper_indices)
 
 
 def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
@@ -129,7 +148,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         preferred over ``noise_mm``.
     """
     prop_rows, lin_rows, marker_rows = [], [], []
-    result = SessionAnalysis(pd.DataFrame(), pd.DataFrame(), pd.DataFrame())
+    du_props, papers, keeps, fitted, fields = {}, {}, {}, {}, {}
     timings = [a.timing if a.timing is not None else timing_from_series(a.command, a.fps)
                for a in averages]
     # the face at rest before every response take: each DU's rest reference is pooled with the
@@ -173,11 +192,11 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         hold = avg.command == avg.command.max()
         field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
-        result.du[avg.du] = props
-        result.paper[avg.du] = paper
-        result.keep[avg.du] = keep
-        result.fitted[avg.du] = fit_keep
-        result.fields_mm[avg.du] = field_mm
+        du_props[avg.du] = props
+        papers[avg.du] = paper
+        keeps[avg.du] = keep
+        fitted[avg.du] = fit_keep
+        fields[avg.du] = field_mm
         kept = paper.keep
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -219,13 +238,12 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                                 "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
                                 "max_displacement_mm": peak[m], "kept": bool(keep[m]),
                                 "fitted": bool(fit_keep[m])})
-    result.properties = pd.DataFrame(prop_rows, columns=PROPERTY_COLUMNS + [
+    properties = pd.DataFrame(prop_rows, columns=PROPERTY_COLUMNS + [
         c for c in (prop_rows[0].keys() if prop_rows else []) if c not in PROPERTY_COLUMNS])
-    result.linearity = pd.DataFrame(lin_rows, columns=["du", "marker", "linearity",
-                                                       "max_displacement_mm", "linearity_corrected",
-                                                       "kept"])
-    result.marker_properties = pd.DataFrame(marker_rows)
-    return result
+    linearity = pd.DataFrame(lin_rows, columns=["du", "marker", "linearity", "max_displacement_mm",
+                                                "linearity_corrected", "kept"])
+    return SessionAnalysis(properties, linearity, pd.DataFrame(marker_rows), du_props, keeps,
+                           fitted, fields, paper=papers)
 
 
 def plan_timing_from_rows(rows: pd.DataFrame, base: PlanTiming = PlanTiming()) -> PlanTiming:

@@ -194,18 +194,17 @@ def stage_peer() -> dict:
 def stage_reconstruct() -> dict:
     """Correspondence + triangulation + labeling of every face take of the paper session."""
     from mocap.calib.wand_calibration import calibrate_session
-    from mocap.pipeline import RunSettings, reconstruct_all
+    from mocap.pipeline import reconstruct
     from mocap.session import load_session
 
     session = load_session(CACHE / "session")
     calibration = calibrate_session(session)
-    out = HERE / "cache" / "paper_out"
     t0 = time.perf_counter()
-    recon = reconstruct_all(session, out, calibration, RunSettings(), lambda m: None)
+    recon = reconstruct(session, calibration)
     dt = time.perf_counter() - t0
-    pts = recon.stats["labeled_points"]
-    blobs = sum(s.get("blobs", 0) for s in recon.stats["takes"].values())
-    return {"takes": len(recon.stats["takes"]), "labeled_points": pts, "blobs": blobs,
+    pts = recon.labeled_points
+    blobs = sum(s.blobs for s in recon.stats.values())
+    return {"takes": len(recon.takes), "labeled_points": pts, "blobs": blobs,
             "reconstruct_seconds": round(dt, 1), "points_per_s": round(pts / dt),
             "blobs_per_s": round(blobs / dt)}
 

@@ -1,13 +1,51 @@
 """facemocap: facial motion capture from raw multi-camera exports to a quantitative face model.
 
-Top-level packages
-------------------
-mocap     session I/O (the input contract), the virtual capture, reconstruction, the CLI.
-calib     camera models and wand calibration of a camera rig.
-analysis  the paper's analyses (displacements, linearity, sigmoid responses, motion design)
-          and the model-discrepancy workflow.
+The Python API (:mod:`mocap.api`)::
+
+    import mocap
+
+    result = mocap.run(mocap.load_session("sample_data/session"))   # writes nothing
+    result.properties, result.trajectories, result.arrays["rest"]
+
+``mocap.load_session``, ``mocap.calibrate``, ``mocap.reconstruct``, ``mocap.analyze`` and
+``mocap.run`` are imported on first use, so ``import mocap`` stays light (it imports neither
+rerun, matplotlib nor dask; nor do these functions unless a run writes its figures or recording).
+
+Subpackages: ``mocap.calib`` (camera models, wand calibration), ``mocap.reconstruct``
+(correspondence, labeling, trials), ``mocap.analysis`` (the paper's analyses, the face model),
+``mocap.simulate`` (the virtual face and rig), ``mocap.interop`` (vendors' files).
 
 Units everywhere: millimetres (mm), pixels (px), seconds (s), command units (integers 0..255).
 """
 
+import sys
+
+from mocap._facade import _Package
+
 __version__ = "0.1.0"
+
+__all__ = ["load_session", "calibrate", "reconstruct", "analyze", "run", "RunSettings"]
+
+
+def __getattr__(name: str):
+    if name == "reconstruct":  # the subpackage, callable (see _ReconstructPackage)
+        import mocap.reconstruct
+
+        return mocap.reconstruct
+    if name in ("load_session", "calibrate", "analyze", "run"):
+        from mocap import api
+
+        return getattr(api, name)
+    if name == "RunSettings":
+        from mocap.run_settings import RunSettings
+
+        return RunSettings
+    raise AttributeError(f"module 'mocap' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)
+
+
+# ``mocap.reconstruct`` is both the subpackage and the API's stage function (mocap._facade)
+sys.modules[__name__].__class__ = _Package

@@ -52,15 +52,22 @@ def _verdict(value: float, th: dict) -> str:
     return "fail" if value > th["fail"] else "warn" if value > th["warn"] else "pass"
 
 
-def audit_capture(result, min_cameras: int = 3) -> dict:
-    """The audit of a run (``mocap.pipeline.RunResult``) as a JSON-ready dict."""
-    recon = result.reconstruction
+def audit_capture(session_name: str, calibration, reconstruction, averages, rejections,
+                  *, min_cameras: int = 3) -> dict:
+    """The audit of a run as a JSON-ready dict.
+
+    calibration : ``mocap.calib.wand_calibration.CalibrationResult`` (raw sessions) or None;
+    reconstruction : ``mocap.reconstruct.takes.Reconstruction``; averages : the DUs'
+    ``TrialAverage``; rejections : the rejections table; min_cameras : the cameras a 3D point
+    needed in the reconstruction (a marker seen by fewer fails).
+    """
+    recon = reconstruction
     names = list(recon.markers.names)
     cap = recon.capture
     items = []
-    report: dict = {"thresholds": THRESHOLDS, "session": result.session.name}
-    if result.calibration is not None:
-        q = result.calibration.quality
+    report: dict = {"thresholds": THRESHOLDS, "session": session_name, "min_cameras": min_cameras}
+    if calibration is not None:
+        q = calibration.quality
         rating = q.get("rating", "poor")
         v = {"excellent": "pass", "good": "pass"}.get(rating, "fail")
         report["calibration"] = {"rating": rating, "verdict": v,
@@ -69,13 +76,13 @@ def audit_capture(result, min_cameras: int = 3) -> dict:
                                  "wand_length_error_sd_mm": q.get("wand_length_error_sd_mm")}
         items.append(("calibration", "calibration", v, f"rating {rating}"))
         cams = []
-        ids = list(result.calibration.rig.ids)
-        views = cap["views"]
-        mf = np.maximum(cap["marker_frames"], 1)
+        ids = list(calibration.rig.ids)
+        views = cap.views
+        mf = np.maximum(cap.marker_frames, 1)
         sees = views >= 0.5 * mf[None]
         for i, cid in enumerate(ids):
-            blobs = int(cap["camera_blobs"][i])
-            ghost = 1.0 - cap["camera_labeled_blobs"][i] / max(blobs, 1)
+            blobs = int(cap.camera_blobs[i])
+            ghost = 1.0 - cap.camera_labeled_blobs[i] / max(blobs, 1)
             expected = mf[sees[i]].sum()
             dropout = 1.0 - views[i][sees[i]].sum() / max(expected, 1)
             rms = float(q["reprojection_rms_px"].get(cid, np.nan))
@@ -93,30 +100,30 @@ def audit_capture(result, min_cameras: int = 3) -> dict:
     noise = recon.noise_per_marker_mm
     noise_m = np.sqrt(np.nanmean(noise**2, axis=1)) if noise is not None else np.full(len(names), np.nan)
     med_noise = float(np.nanmedian(noise_m)) if np.isfinite(noise_m).any() else np.nan
-    rej = result.rejections if result.rejections is not None else pd.DataFrame(columns=["du", "marker", "reason"])
+    rej = rejections if rejections is not None else pd.DataFrame(columns=["du", "marker", "reason"])
     spread_bad = set(rej.loc[rej["reason"] == "abnormal_spread", "marker"])
     spreads = {}
-    for avg in result.averages:
+    for avg in averages:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             spreads[avg.du] = np.nanmean(avg.spread_mm, axis=0)
     spread_m = np.nanmean(np.stack(list(spreads.values())), axis=0) if spreads else np.full(len(names), np.nan)
-    frames = max(int(cap.get("frames", 0)), 1)
+    frames = max(int(cap.frames), 1)
     markers = []
     for m, name in enumerate(names):
-        missing = 1.0 - cap["marker_frames"][m] / frames
+        missing = 1.0 - cap.marker_frames[m] / frames
         n_cam = None
         verdicts = {"missing": _verdict(missing, THRESHOLDS["marker_missing_fraction"])}
-        if "views" in cap:
-            v = cap["views"][:, m]
-            n_cam = int(np.sum(v >= 0.5 * max(cap["marker_frames"][m], 1)))
+        if cap.views is not None:
+            v = cap.views[:, m]
+            n_cam = int(np.sum(v >= 0.5 * max(cap.marker_frames[m], 1)))
             verdicts["cameras"] = "fail" if n_cam < min_cameras else "pass"
         ratio = noise_m[m] / med_noise if np.isfinite(med_noise) and med_noise > 0 else np.nan
         verdicts["noise"] = _verdict(ratio, THRESHOLDS["marker_noise_vs_median"]) if np.isfinite(ratio) else "pass"
         verdicts["spread"] = "fail" if name in spread_bad else "pass"
         worst = max(verdicts.values(), key=ORDER.get)
-        markers.append({"marker": name, "cameras": n_cam, "gaps": int(cap["gaps"][m]),
-                        "longest_gap_frames": int(cap["longest_gap"][m]),
+        markers.append({"marker": name, "cameras": n_cam, "gaps": int(cap.gaps[m]),
+                        "longest_gap_frames": int(cap.longest_gap[m]),
                         "missing_fraction": float(missing), "noise_floor_mm": float(noise_m[m]),
                         "across_trial_spread_mm": float(spread_m[m]), "verdicts": verdicts,
                         "verdict": worst})
@@ -179,14 +186,11 @@ def _markdown(a: dict) -> str:
     return "\n".join(lines)
 
 
-def write_audit(result, out: Path, audit: dict | None = None, min_cameras: int = 3) -> dict:
-    """Write audit.json and audit.md into ``out``; return the audit.
+def write_audit(out: Path, audit: dict) -> list[Path]:
+    """Write audit.json and audit.md into ``out``; return the files.
 
-    ``min_cameras``: the reconstruction's minimum, as the run was given it. The audit's figures
-    are drawn by the outputs layer (:func:`mocap.analysis.figures.audit_figures`): a workflow
-    returns data.
+    The audit's figures are drawn by the outputs layer
+    (:func:`mocap.analysis.figures.audit_figures`): a workflow returns data.
     """
-    a = audit if audit is not None else audit_capture(result, min_cameras=min_cameras)
-    write_text(out / "audit.json", json.dumps(a, indent=2, default=float))
-    write_text(out / "audit.md", _markdown(a))
-    return a
+    return [write_text(out / "audit.json", json.dumps(audit, indent=2, default=float)),
+            write_text(out / "audit.md", _markdown(audit))]

@@ -168,7 +168,7 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
     for i, st in enumerate(res.stages):
         grid = np.array([[st["take_phases"][t].get(ph, np.nan) for ph in PHASES] for t in takes])
         p = fig_dir / f"discrepancy_localisation_stage{i}.png"
-        F.discrepancy_localisation(p, takes, list(PHASES), grid, f"stage {i}: {st['model']}")
+        F.save(F.discrepancy_localisation(takes, list(PHASES), grid, f"stage {i}: {st['model']}"), p)
         out[f"localisation, stage {i}"] = f"figures/{p.name}"
     names = list(data.marker_names)
     ratios = []
@@ -178,13 +178,14 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
             r[names.index(mname)] = v["ratio"]
         ratios.append(r)
     p = fig_dir / "discrepancy_markers.png"
-    F.discrepancy_marker_map(p, data.rest_mm, ratios, [f"stage {i}: {st['model']}"
-                                                      for i, st in enumerate(res.stages)])
+    F.save(F.discrepancy_marker_map(data.rest_mm, ratios, [f"stage {i}: {st['model']}"
+                                                           for i, st in enumerate(res.stages)]), p)
     out["per marker, every stage"] = f"figures/{p.name}"
     p = fig_dir / "discrepancy_gap.png"
-    F.discrepancy_gap(p, [st["model"] for st in res.stages], [st["heldout_rms_mm"] for st in res.stages],
-                      {du: [st["dus"].get(du, {}).get("rms_mm", np.nan) for st in res.stages]
-                       for du in res.stages[0]["dus"]}, floor)
+    F.save(F.discrepancy_gap([st["model"] for st in res.stages],
+                             [st["heldout_rms_mm"] for st in res.stages],
+                             {du: [st["dus"].get(du, {}).get("rms_mm", np.nan) for st in res.stages]
+                              for du in res.stages[0]["dus"]}, floor), p)
     out["gap per step"] = f"figures/{p.name}"
     # measured against simulated, before and after each step, on the takes where the gap was largest
     for i in range(len(res.steps)):
@@ -200,7 +201,7 @@ def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict
             panels.append((f"{name}, marker {data.marker_names[m]} (along its largest residual)",
                            tt, obs[:, m] @ u, (obs[:, m] - e0[:, m]) @ u, (obs[:, m] - e1[:, m]) @ u))
         p = fig_dir / f"discrepancy_traces_step{i + 1}_{res.steps[i].effect}.png"
-        F.discrepancy_traces(p, panels, res.stages[i]["model"], res.stages[i + 1]["model"])
+        F.save(F.discrepancy_traces(panels, res.stages[i]["model"], res.stages[i + 1]["model"]), p)
         out[f"measured vs simulated, step {i + 1} ({res.steps[i].effect})"] = f"figures/{p.name}"
     return out
 

@@ -1,52 +1,71 @@
-"""The composer: one run of a session through every stage, raw to result.
+"""The composer: one run of a session through every stage, raw exports to results.
 
-``run_session`` is the only place that joins the stages; each stage is a pure function of the
-previous stages' results, and the returned ``RunResult`` holds every intermediate. Files are
-written atomically under ``OUT_DIR`` per OUTPUTS.md.
+Stages are pure functions from one typed result to the next:
 
-Stages (as they land): validate -> calibrate (raw sessions) -> reconstruct -> trials, noise,
-rejections -> analyses and figures -> audit -> Rerun recording.
+    Session -> calibrate -> CalibrationResult (raw sessions)
+            -> find_markers -> MarkerSet -> reconstruct -> Reconstruction (every face take)
+            -> compute_trials -> Trials (averages, responses, rejections)
+            -> analyze_session -> SessionAnalysis (the paper's analyses, motion evaluations)
+            -> audit_capture -> the audit report
+
+``run`` joins them and returns one frozen :class:`RunResult`. Without an output folder it
+writes nothing. With one it writes OUTPUTS.md's files atomically, holds the folder's lock
+(:mod:`mocap.run_lock`) and keys every stage's results by what it reads
+(:mod:`mocap.run_cache`): a rerun reuses what is unchanged, recomputes the rest and says which;
+a killed run resumes from the takes it finished.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import platform
+import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator, Mapping
 
 import numpy as np
 import pandas as pd
 
 from mocap import __version__
-from mocap.analysis.paper_indices import schedule_timing
 from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.paths import check_output_path
-from mocap.reconstruct.correspondence import (
-    ReconstructionSettings,
-    blob_camera_index,
-    reconstruct_points,
-)
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
-from mocap.reconstruct.labeling import (
-    LabelSettings,
-    MarkerSet,
-    identify_markers,
-    label_take,
-    trajectories_frame,
+from mocap.reconstruct.labeling import MarkerSet, identify_markers, trajectories_frame
+from mocap.reconstruct.takes import (
+    BlobRoles,
+    CaptureCounts,
+    LazyTakes,
+    Reconstruction,
+    TakeReconstruction,
+    labeled_take,
+    labeled_take_from_table,
+    reconstruct_take,
+    take_frame_count,
 )
 from mocap.reconstruct.trials import (
-    RejectionSettings,
     TrialAverage,
     average_trials,
     find_rejections,
     noise_floor,
     responses_frame,
 )
+from mocap.run_settings import RunSettings, to_dict
+from mocap.schedules import schedule_timing
 from mocap.session import Session, SessionError, command_matrix, load_session
+
+__all__ = ["RunSettings", "RunResult", "Trials", "Analysis", "calibrate", "find_markers",
+           "reconstruct", "compute_trials", "analyze_session", "analyze", "run", "run_session"]
+
+FACE_KINDS = ("rest", "response", "motion")
+RESPONSE_COLUMNS = ["du", "frame", "time_s", "command", "marker", "x", "y", "z", "spread_mm",
+                    "n_trials", "displacement_mm", "delta"]
+Say = Callable[[str], None]
+
+
+def _quiet(msg: str) -> None:
+    pass
 
 
 def _versions() -> dict:
@@ -58,159 +77,191 @@ def _versions() -> dict:
             "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
 
 
+def _bar(iterable, total: int, desc: str, bars: bool | None):
+    """A tqdm progress bar on stderr: shown when ``bars`` is True, or when None and stderr is a
+    terminal."""
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, unit="take" if "take" in desc else "it",
+                disable=(None if bars is None else not bars), file=sys.stderr, leave=False,
+                dynamic_ncols=True)
+
+
+# --- results ---------------------------------------------------------------------------------
+
 @dataclass(frozen=True)
-class RunSettings:
-    """Settings of a run; defaults follow the paper."""
+class Trials:
+    """Each DU's trials averaged, the responses table and the rejections.
 
-    reconstruction: ReconstructionSettings = ReconstructionSettings()
-    labels: LabelSettings = LabelSettings()
-    rejections: RejectionSettings = RejectionSettings()
-    fill_gaps_frames: int = 0  # interpolate gaps up to this many frames (always flagged)
-    analyze: bool = True  # the paper's analyses and figures (off for an audit-only run)
-    jobs: int = field(default_factory=lambda: os.cpu_count() or 1)  # processes over takes
-    recording: bool = True  # write session.rrd (Rerun)
-    record_blobs: str = "subset"  # 2D blobs in the recording: "subset" (wand, rest, first
-    #                               response take), "all" face takes, or "none"
+    averages : one TrialAverage per DU (ascending); responses : responses.parquet's rows (plus
+    ``rejected``); rejections : rejections.csv's rows (``du`` NA for every-DU rows).
+    """
+
+    averages: tuple[TrialAverage, ...]
+    responses: pd.DataFrame
+    rejections: pd.DataFrame
 
 
-@dataclass
-class Reconstruction:
-    """Labeled trajectories kept for the later stages (response takes), plus statistics."""
+@dataclass(frozen=True)
+class Analysis:
+    """What :func:`analyze` returns: the trials and the paper's analyses of them (None when the
+    session has no response takes)."""
 
-    markers: MarkerSet
-    dense: dict  # take name -> LabeledTake, for response takes and the rest take
-    stats: dict
-    noise_floor_mm: float | None
-    noise_per_marker_mm: np.ndarray | None
-    capture: dict = field(default_factory=dict)  # per camera / marker counts for the audit
-    blob_roles: dict = field(default_factory=dict)  # take -> (frame, camera, x, y, role) arrays;
-    #   role 0 labeled marker, 1 in an unlabeled point, 2 in no point (ghost)
+    trials: Trials
+    results: object | None  # mocap.analysis.session_analysis.SessionAnalysis
+
+    @property
+    def properties(self) -> pd.DataFrame | None:
+        return None if self.results is None else self.results.properties
+
+    @property
+    def linearity(self) -> pd.DataFrame | None:
+        return None if self.results is None else self.results.linearity
+
+    @property
+    def rejections(self) -> pd.DataFrame:
+        return self.trials.rejections
+
+    @property
+    def motions(self) -> tuple:
+        return () if self.results is None else self.results.motions
 
 
-@dataclass
+@dataclass(frozen=True)
 class RunResult:
-    """Everything a run produced; ``summary`` is what summary.json holds."""
+    """Everything a run produced.
+
+    session, settings : what ran; calibration : ``CalibrationResult`` (raw sessions) or None;
+    reconstruction : every face take's labeled trajectories; trials : averages, responses,
+    rejections; analysis : ``SessionAnalysis`` (None for an audit-only run or without response
+    takes); audit : the audit report (audit.json); summary : summary.json; out_dir : the output
+    folder (None: nothing was written); reused, computed : the stages taken from an earlier run
+    in ``out_dir`` and those computed (``reconstruct (k of n takes)`` for part of the takes).
+    """
 
     session: Session
-    out_dir: Path
-    summary: dict = field(default_factory=dict)
-    calibration: object | None = None  # calib.wand_calibration.CalibrationResult (raw sessions)
-    reconstruction: Reconstruction | None = None
-    averages: list = field(default_factory=list)
-    rejections: pd.DataFrame | None = None
-    analysis: object | None = None  # mocap.analysis.session_analysis.SessionAnalysis
-    audit: dict | None = None
+    settings: RunSettings
+    calibration: object | None
+    reconstruction: Reconstruction
+    trials: Trials
+    analysis: object | None
+    audit: Mapping
+    summary: Mapping
+    out_dir: Path | None = None
+    reused: tuple[str, ...] = ()
+    computed: tuple[str, ...] = ()
+
+    @property
+    def averages(self) -> tuple[TrialAverage, ...]:
+        return self.trials.averages
+
+    @property
+    def rejections(self) -> pd.DataFrame:
+        return self.trials.rejections
+
+    @property
+    def responses(self) -> pd.DataFrame:
+        return self.trials.responses
+
+    @property
+    def markers(self) -> tuple[str, ...]:
+        return self.reconstruction.markers.names
+
+    @property
+    def properties(self) -> pd.DataFrame | None:
+        """One row per DU, the paper's indices (properties.csv)."""
+        return None if self.analysis is None else self.analysis.properties
+
+    @property
+    def linearity(self) -> pd.DataFrame | None:
+        return None if self.analysis is None else self.analysis.linearity
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Take name -> (n_frames, n_markers, 3) marker positions, mm (NaN: not seen); markers in
+        ``markers`` order. Read-only views of the reconstruction."""
+        def view(X: np.ndarray) -> np.ndarray:
+            v = X.view()
+            v.flags.writeable = False
+            return v
+
+        return {name: view(lab.X) for name, lab in self.reconstruction.takes.items()}
+
+    @property
+    def trajectories(self) -> pd.DataFrame:
+        """Every face take's trajectories as one tidy table: take, frame, marker, x, y, z (mm),
+        n_cameras, residual_px, interpolated (the rows of trajectories/<take>.parquet)."""
+        names = self.markers
+        parts = [trajectories_frame(lab, names).assign(take=name)
+                 for name, lab in self.reconstruction.takes.items()]
+        if not parts:
+            return pd.DataFrame(columns=["take", "frame", "marker", "x", "y", "z"])
+        df = pd.concat(parts, ignore_index=True)
+        return df[["take"] + [c for c in df.columns if c != "take"]]
 
 
-def _take_frame_count(df: pd.DataFrame) -> int:
-    return int(df["frame"].max()) + 1
+# --- stages ----------------------------------------------------------------------------------
+
+def calibrate(session: Session, *, progress: Say | None = None):
+    """The rig's wand calibration (raw sessions): ``CalibrationResult``."""
+    from mocap.calib.wand_calibration import calibrate_session
+
+    if session.dimension != "2d":
+        raise SessionError(f"{session.root}: a labeled 3D session has no cameras to calibrate")
+    return calibrate_session(session, progress=progress)
 
 
-def reconstruct_all(session: Session, out: Path, calibration, settings: "RunSettings",
-                    say: Callable[[str], None]) -> Reconstruction:
-    """Every take to labeled trajectories, written as trajectories/<take>.parquet."""
-    keep_kinds = {"rest", "response"}
-    dense: dict = {}
-    blob_roles: dict = {}
-    stats: dict = {"takes": {}}
-    face_takes = [t for t in session.takes if t.kind in ("rest", "response", "motion")]
+def _rest_take(session: Session):
+    rest = session.takes_of_kind("rest")
+    return rest[0] if rest else None
+
+
+def find_markers(session: Session, calibration=None, settings: RunSettings = RunSettings()
+                 ) -> MarkerSet:
+    """The session's markers: found on the rest take (raw sessions), or the labeled takes'
+    names (3D sessions, rest positions from the rest take when there is one)."""
+    face = [t for t in session.takes if t.kind in FACE_KINDS]
+    rest = _rest_take(session)
     if session.dimension == "2d":
-        rig, quality = calibration.rig, calibration.quality
-        rest = session.takes_of_kind("rest")
-        if not rest:
+        if calibration is None:
+            raise ValueError("a raw session's markers need its calibration: calibrate(session)")
+        if rest is None:
             raise SessionError(f"{session.root}/session.toml: a raw session needs a 'rest' take "
                                "to find its markers")
-        blobs = session.read_take(rest[0].name)
-        pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
-        markers = identify_markers(pts, _take_frame_count(blobs), session.marker_template,
-                                   settings.labels)
-        say(f"{len(markers.names)} markers found on the rest take '{rest[0].name}'")
-        responses = session.takes_of_kind("response")
-        subset = {rest[0].name} | ({responses[0].name} if responses else set())
-        M = len(markers.names)
-        capture = {"camera_blobs": np.zeros(len(rig), np.int64),
-                   "camera_labeled_blobs": np.zeros(len(rig), np.int64),
-                   "views": np.zeros((len(rig), M), np.int64),
-                   "marker_frames": np.zeros(M, np.int64), "frames": 0,
-                   "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
-        tasks = [(take.name, take.kind in keep_kinds,
-                  settings.record_blobs == "all"
-                  or (settings.record_blobs == "subset" and take.name in subset))
-                 for take in face_takes]
-        for name, res in _map_takes(session, out, rig, quality, markers, settings, tasks):
-            lab, acc = res["labeled"], res["capture"]
-            for k in ("camera_blobs", "camera_labeled_blobs", "views", "marker_frames", "gaps"):
-                capture[k] += acc[k]
-            capture["frames"] += acc["frames"]
-            capture["longest_gap"] = np.maximum(capture["longest_gap"], acc["longest_gap"])
-            stats["takes"][name] = res["stats"]
-            if lab is not None:
-                dense[name] = lab
-            if res["roles"] is not None:
-                blob_roles[name] = res["roles"]
-            say(f"  {name}: {res['stats']['labeled_points']} labeled points, "
-                f"{res['stats']['missing_marker_frames']} marker-frames missing")
+        from mocap.reconstruct.correspondence import reconstruct_points
+
+        blobs = session.read_take(rest.name)
+        pts = reconstruct_points(blobs, calibration.rig, calibration.quality, settings.reconstruction)
+        return identify_markers(pts, take_frame_count(blobs), session.marker_template,
+                                settings.labels)
+    frames = [session.read_take(t.name) for t in face]
+    names = marker_names_3d(frames, session.marker_template)
+    if rest is not None:
+        rest_pos = np.nanmedian(dense_from_3d(session.read_take(rest.name), names).X, axis=0)
     else:
-        frames = {t.name: session.read_take(t.name) for t in face_takes}
-        names = marker_names_3d(list(frames.values()), session.marker_template)
-        rest_take = session.takes_of_kind("rest")
-        rest_pos = (np.nanmedian(dense_from_3d(frames[rest_take[0].name], names).X, axis=0)
-                    if rest_take else np.full((len(names), 3), np.nan))
-        markers = MarkerSet(tuple(names), rest_pos)
-        M = len(names)
-        capture = {"marker_frames": np.zeros(M, np.int64), "frames": 0,
-                   "gaps": np.zeros(M, np.int64), "longest_gap": np.zeros(M, np.int64)}
-        for take in face_takes:
-            lab = dense_from_3d(frames[take.name], names)
-            missing = np.isnan(lab.X[..., 0])
-            capture["marker_frames"] += (~missing).sum(axis=0)
-            capture["frames"] += missing.shape[0]
-            capture["gaps"] += _gap_counts(missing)
-            capture["longest_gap"] = np.maximum(capture["longest_gap"], _longest_gaps(missing))
-            write_parquet(trajectories_frame(lab, names), out / "trajectories" / f"{take.name}.parquet")
-            stats["takes"][take.name] = lab.stats
-            if take.kind in keep_kinds:
-                dense[take.name] = lab
-    noise, noise_mean = None, None
-    rest = session.takes_of_kind("rest")
-    if rest and rest[0].name in dense:
-        noise, noise_mean = noise_floor(dense[rest[0].name].X)
-    total = sum(s.get("labeled_points", s.get("points", 0)) for s in stats["takes"].values())
-    stats["labeled_points"] = int(total)
-    return Reconstruction(markers, dense, stats, noise_mean, noise, capture, blob_roles)
+        rest_pos = np.full((len(names), 3), np.nan)
+    return MarkerSet(tuple(names), rest_pos)
 
 
-def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerSet,
-                     settings: "RunSettings", name: str, keep: bool, record: bool) -> dict:
-    """One raw take to labeled trajectories (written as trajectories/<take>.parquet).
+def _recorded(session: Session, settings: RunSettings) -> set[str]:
+    """The takes whose blobs the recording shows."""
+    if settings.record_blobs == "all":
+        return {t.name for t in session.takes if t.kind in FACE_KINDS}
+    if settings.record_blobs == "none":
+        return set()
+    rest, responses = _rest_take(session), session.takes_of_kind("response")
+    return ({rest.name} if rest else set()) | ({responses[0].name} if responses else set())
 
-    Returns the take's statistics, its per-camera/marker capture counts, the LabeledTake when
-    ``keep`` and the blobs' roles when ``record``. Independent of every other take once the rig
-    is calibrated and the markers are known, so takes run in parallel (``RunSettings.jobs``).
-    """
-    blobs = session.read_take(name)
-    n_frames = _take_frame_count(blobs)
-    pts = reconstruct_points(blobs, rig, quality, settings.reconstruction)
-    lab = label_take(pts, markers, n_frames, settings.labels, settings.fill_gaps_frames,
-                     n_blobs=len(blobs))
-    lab.stats["blobs"] = int(len(blobs))
-    lab.stats["matched_blobs"] = int((pts.blob >= 0).sum())
-    cam_idx = blob_camera_index(blobs["camera"], rig.ids)
-    missing = np.isnan(lab.X[..., 0])
-    capture = {
-        "camera_blobs": np.bincount(cam_idx, minlength=len(rig)),
-        "camera_labeled_blobs": np.bincount(cam_idx[lab.blob_marker >= 0], minlength=len(rig)),
-        "views": lab.views, "marker_frames": (~missing).sum(axis=0), "frames": n_frames,
-        "gaps": _gap_counts(missing), "longest_gap": _longest_gaps(missing),
-    }
-    write_parquet(trajectories_frame(lab, markers.names), out / "trajectories" / f"{name}.parquet")
-    roles = None
-    if record:
-        role = np.full(len(blobs), 2, np.int8)  # in no 3D point: a ghost
-        role[pts.blob[pts.blob >= 0]] = 1  # in a point that got no marker
-        role[lab.blob_marker >= 0] = 0  # labeled
-        roles = (blobs["frame"].to_numpy(), cam_idx, blobs["x"].to_numpy(), blobs["y"].to_numpy(), role)
-    return {"stats": lab.stats, "capture": capture, "labeled": lab if keep else None, "roles": roles}
+
+def _one_take(session: Session, name: str, calibration, markers: MarkerSet,
+              settings: RunSettings, record: bool) -> TakeReconstruction:
+    """One face take, read and reconstructed (run in worker processes)."""
+    if session.dimension == "2d":
+        return reconstruct_take(name, session.read_take(name), calibration.rig, calibration.quality,
+                                markers, reconstruction=settings.reconstruction,
+                                labels=settings.labels, fill_gaps_frames=settings.fill_gaps_frames,
+                                record=record)
+    return labeled_take(name, dense_from_3d(session.read_take(name), list(markers.names)))
 
 
 def _worker_init() -> None:
@@ -222,37 +273,64 @@ def _worker_init() -> None:
         pass
 
 
-def _map_takes(session, out, rig, quality, markers, settings, tasks):
-    """Yield (take name, result) for every task, in parallel over ``settings.jobs`` processes."""
-    jobs = max(1, min(int(settings.jobs), len(tasks)))
-    if jobs == 1:
-        for name, keep, record in tasks:
-            yield name, reconstruct_take(session, out, rig, quality, markers, settings, name, keep, record)
+def _map_takes(session, names: list[str], calibration, markers, settings: RunSettings,
+               recorded: set[str]) -> Iterator[TakeReconstruction]:
+    """Every take of ``names`` reconstructed, yielded as each finishes (in parallel over
+    ``settings.jobs`` processes for raw sessions)."""
+    jobs = max(1, min(int(settings.jobs), len(names)))
+    if jobs == 1 or session.dimension != "2d":
+        for name in names:
+            yield _one_take(session, name, calibration, markers, settings, name in recorded)
         return
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
                              initializer=_worker_init) as pool:
-        futures = [pool.submit(reconstruct_take, session, out, rig, quality, markers, settings,
-                               name, keep, record) for name, keep, record in tasks]
-        for (name, _, _), fut in zip(tasks, futures):
-            yield name, fut.result()
+        futures = [pool.submit(_one_take, session, name, calibration, markers, settings,
+                               name in recorded) for name in names]
+        for fut in as_completed(futures):
+            yield fut.result()
 
 
-def _gap_counts(missing: np.ndarray) -> np.ndarray:
-    """(M,) number of interior runs of missing frames per marker; missing (n_frames, M)."""
-    starts = missing[1:] & ~missing[:-1]
-    return starts.sum(axis=0) + missing[0]
+def assemble(session: Session, markers: MarkerSet, takes: Mapping[str, TakeReconstruction],
+             stored: Mapping[str, tuple] | None = None) -> Reconstruction:
+    """The session's Reconstruction from its takes' (in session order); the noise floor from
+    the rest take. ``stored``: takes of an earlier run, name -> (loader of its LabeledTake,
+    stats, capture, roles), read only when asked for."""
+    stored = stored or {}
+    order = [t.name for t in session.takes if t.name in takes or t.name in stored]
+    part = {n: (lambda tr=takes[n]: tr.labeled, takes[n].labeled.stats, takes[n].capture,
+                takes[n].roles) if n in takes else stored[n] for n in order}
+    caps = [part[n][2] for n in order]
+    M = len(markers.names)
+    capture = sum(caps[1:], caps[0]) if caps else CaptureCounts.of_take(np.zeros((0, M), bool))
+    labeled = LazyTakes({n: part[n][0] for n in order}) if stored else \
+        {n: takes[n].labeled for n in order}
+    rest = _rest_take(session)
+    noise, noise_mean = None, None
+    if rest is not None and rest.name in labeled:
+        noise, noise_mean = noise_floor(labeled[rest.name].X)
+    roles: dict[str, BlobRoles] = {n: part[n][3] for n in order if part[n][3] is not None}
+    return Reconstruction(markers, labeled, {n: part[n][1] for n in order}, capture, noise_mean,
+                          noise, roles)
 
 
-def _longest_gaps(missing: np.ndarray) -> np.ndarray:
-    """(M,) longest run of missing frames per marker (vectorised run lengths)."""
-    n = missing.shape[0]
-    # the run length at a missing frame is its distance to the last frame that was seen
-    idx = np.where(~missing, np.arange(n)[:, None], -1)
-    run_len = np.arange(n)[:, None] - np.maximum.accumulate(idx, axis=0)
-    return np.where(missing, run_len, 0).max(axis=0)
+def reconstruct(session: Session, calibration=None, settings: RunSettings = RunSettings(), *,
+                progress: Say | None = None, bars: bool | None = False) -> Reconstruction:
+    """Every face take (rest, response, motion) to labeled trajectories; nothing is written.
+
+    calibration : ``calibrate(session)``'s result (raw sessions; None for labeled 3D ones).
+    """
+    say = progress or _quiet
+    markers = find_markers(session, calibration, settings)
+    say(f"{len(markers.names)} markers")
+    names = [t.name for t in session.takes if t.kind in FACE_KINDS]
+    done = {}
+    for tr in _bar(_map_takes(session, names, calibration, markers, settings,
+                              _recorded(session, settings)), len(names), "reconstructing takes", bars):
+        done[tr.name] = tr
+    return assemble(session, markers, done)
 
 
 def average_responses(session: Session, recon: Reconstruction) -> list[TrialAverage]:
@@ -263,7 +341,7 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
         by_du.setdefault(int(take.du), []).append(take)
     for du, takes in sorted(by_du.items()):
         takes = sorted(takes, key=lambda t: (t.trial or 0, t.name))
-        X = [recon.dense[t.name].X for t in takes]
+        X = [recon.takes[t.name].X for t in takes]
         rows = [session.read_commands(t.name) for t in takes]
         cmds = [command_matrix(r, session.fps, x.shape[0], [du])[:, 0] for r, x in zip(rows, X)]
         first = rows[0][rows[0]["du"] == du]
@@ -273,193 +351,437 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
     return out
 
 
-def run_analyses(session: Session, recon: Reconstruction, averages, rejections, out: Path,
-                 say: Callable[[str], None]):
-    """The paper's analyses, their tables and figures; motion takes evaluated against plans."""
-    from mocap.analysis import figures
-    from mocap.analysis.session_analysis import analyze_responses, evaluate_plan_take, is_plan, kept_markers
+def compute_trials(session: Session, recon: Reconstruction, settings: RunSettings = RunSettings()
+                   ) -> Trials:
+    """Trials averaged per DU, the responses table and the rejections."""
+    averages = average_responses(session, recon)
+    names = list(recon.markers.names)
+    if averages:
+        responses = pd.concat([responses_frame(a, names) for a in averages], ignore_index=True)
+    else:
+        responses = pd.DataFrame(columns=RESPONSE_COLUMNS)
+    rejections = find_rejections(averages, names, settings.rejections)
+    rejected = set(zip(rejections["du"].astype("float").fillna(-1).astype(int), rejections["marker"]))
+    all_du = {m for d, m in rejected if d == -1}
+    flags = [(m in all_du) or ((d, m) in rejected) for d, m in zip(responses["du"], responses["marker"])]
+    responses = responses.assign(rejected=np.asarray(flags, bool))
+    return Trials(tuple(averages), responses, rejections)
+
+
+def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
+                    settings: RunSettings = RunSettings()):
+    """The paper's analyses of the averaged responses, and every plan take (A-E) evaluated
+    against its plan: ``SessionAnalysis``."""
+    from mocap.analysis.linearity import position_covariance
+    from mocap.analysis.session_analysis import (
+        MotionResult,
+        analyze_responses,
+        evaluate_plan_take,
+        is_plan,
+        kept_markers,
+    )
 
     names = list(recon.markers.names)
     du_names = {d.id: d.name for d in session.dus}
-    feedback = {d.id: d.feedback for d in session.dus}
     noise, noise_cov = None, None
+    rest = _rest_take(session)
     if recon.noise_per_marker_mm is not None:
         noise = np.sqrt(np.nanmean(recon.noise_per_marker_mm**2, axis=1))
-        rest = session.takes_of_kind("rest")
-        if rest and rest[0].name in recon.dense:
-            from mocap.analysis.linearity import position_covariance
-
-            noise_cov = position_covariance(recon.dense[rest[0].name].X)[0]
-    res = analyze_responses(averages, names, rejections, du_names, noise_mm=noise,
+        if rest is not None and rest.name in recon.takes:
+            noise_cov = position_covariance(recon.takes[rest.name].X)[0]
+    res = analyze_responses(list(trials.averages), names, trials.rejections, du_names,
+                            n_boot=settings.bootstrap_samples, noise_mm=noise,
                             noise_cov_mm2=noise_cov)
-    write_csv(res.properties, out / "properties.csv")
-    write_csv(res.linearity, out / "linearity.csv")
-    write_csv(res.marker_properties, out / "marker_properties.csv")
-    fig = out / "figures"
-    rest = recon.markers.rest_mm
-    for avg in averages:
-        figures.displacement_field(fig / f"du{avg.du:02d}_displacement_field.png", avg.du,
-                                   du_names.get(avg.du, ""), rest, res.fields_mm[avg.du],
-                                   res.keep[avg.du])
-        figures.response_curves(fig / f"du{avg.du:02d}_response.png", avg.du,
-                                du_names.get(avg.du, ""), res.paper[avg.du], avg.fps)
-    props = res.properties
-    figures.linearity_bars(fig / "linearity.png", props["du"], props["linearity_mean"],
-                           props["linearity_std"])
-    figures.property_chart(fig / "property_chart.png", props["du"], props["sensitivity"],
-                           props["hysteresis"], props["dyssynchrony"],
-                           [feedback.get(d, False) for d in props["du"]])
+    rejections = trials.rejections
     keep_all = kept_markers(rejections[rejections["du"].isna()], names, None)
+    motions = []
     for take in session.takes_of_kind("motion"):
-        if not is_plan(take.plan) or take.commands is None:
+        if not is_plan(take.plan) or take.commands is None or take.name not in recon.takes:
             continue
-        path = out / "trajectories" / f"{take.name}.parquet"
-        df = pd.read_parquet(path, columns=["frame", "marker", "x", "y", "z"])
-        n_frames = int(df["frame"].max()) + 1
-        X = df[["x", "y", "z"]].to_numpy().reshape(n_frames, len(names), 3)
+        X = recon.takes[take.name].X
         rows = session.read_commands(take.name)
-        cmd = command_matrix(rows, session.fps, n_frames, list(session.du_ids))
+        cmd = command_matrix(rows, session.fps, X.shape[0], list(session.du_ids))
         # evaluated over the markers its DUs move well (those in their response fits)
         keep = keep_all.copy()
         fitted = [res.fitted[d] for d in sorted(set(rows["du"])) if d in res.fitted]
         if fitted:
             keep &= np.any(fitted, axis=0)
         ev = evaluate_plan_take(X, cmd, rows, session.fps, take.plan, keep)
-        res.motions.append((take.name, take.plan.upper(), ev))
-        figures.motion_result(fig / f"motion_{take.name}.png", f"{take.name} (plan {take.plan})", ev)
-    say(f"analyses: {len(averages)} DUs, {len(res.motions)} motion takes evaluated; figures in {fig}")
-    return res
+        motions.append(MotionResult(take.name, take.plan.upper(), ev))
+    return replace(res, motions=tuple(motions))
 
 
-def run_session(session_dir: str | Path, out_dir: str | Path,
-                progress: Callable[[str], None] | None = None,
-                settings: RunSettings = RunSettings()) -> RunResult:
-    """Run every available stage on ``session_dir`` and write results into ``out_dir``."""
-    say = progress or (lambda msg: None)
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
-    session = load_session(session_dir)
+def analyze(session: Session, reconstruction: Reconstruction, settings: RunSettings | None = None,
+            **overrides) -> Analysis:
+    """Trials, rejections and the paper's analyses of a reconstruction; nothing is written.
+
+    ``overrides``: settings by name (``bootstrap_samples=0``, ``min_displacement_mm=0.1``...).
+    """
+    from mocap.run_settings import with_values
+
+    settings = with_values(settings or RunSettings(), overrides, "analyze()")
+    trials = compute_trials(session, reconstruction, settings)
+    results = analyze_session(session, reconstruction, trials, settings) if trials.averages else None
+    return Analysis(trials, results)
+
+
+# --- outputs ---------------------------------------------------------------------------------
+
+def write_analysis(out: Path, session: Session, recon: Reconstruction, trials: Trials, res,
+                   bars: bool | None = False) -> list[Path]:
+    """properties.csv, linearity.csv, marker_properties.csv and the figures; the files."""
+    from mocap.analysis import figures as F
+
+    files = [write_csv(res.properties, out / "properties.csv"),
+             write_csv(res.linearity, out / "linearity.csv"),
+             write_csv(res.marker_properties, out / "marker_properties.csv")]
+    du_names = {d.id: d.name for d in session.dus}
+    feedback = {d.id: d.feedback for d in session.dus}
+    fig = out / "figures"
+    rest = recon.markers.rest_mm
+    props = res.properties
+    jobs = []
+    for avg in trials.averages:
+        name = du_names.get(avg.du, "")
+        jobs.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
+                     (avg.du, name, rest, res.fields_mm[avg.du], res.keep[avg.du])))
+        jobs.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
+                     (avg.du, name, res.paper[avg.du], avg.fps)))
+    jobs.append((fig / "linearity.png", F.linearity_bars,
+                 (props["du"], props["linearity_mean"], props["linearity_std"])))
+    jobs.append((fig / "property_chart.png", F.property_chart,
+                 (props["du"], props["sensitivity"], props["hysteresis"], props["dyssynchrony"],
+                  [feedback.get(d, False) for d in props["du"]])))
+    plans = {t.name: t.plan for t in session.takes}
+    for take, _, ev in res.motions:
+        jobs.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
+    for path, draw, args in _bar(jobs, len(jobs), "figures", bars):
+        files.append(F.save(draw(*args), path))
+    return files
+
+
+def write_audit_files(out: Path, audit: dict, recon: Reconstruction, calibration) -> list[Path]:
+    """audit.json, audit.md and the audit's figures; the files."""
+    from mocap.analysis import figures as F
+    from mocap.audit import write_audit
+
+    return write_audit(out, audit) + F.audit_figures(out, audit, recon, calibration)
+
+
+def _write_take(out: Path, store, key: str, tr: TakeReconstruction, names) -> None:
+    """A finished take: its counts (state), then its trajectories, which commit it."""
+    from mocap.run_cache import write_keyed_parquet
+
+    path = out / "trajectories" / f"{tr.name}.parquet"
+    if store is None:
+        write_parquet(trajectories_frame(tr.labeled, names), path)
+        return
+    store.save_take(tr.name, key, (tr.labeled.stats, tr.capture, tr.roles))
+    write_keyed_parquet(trajectories_frame(tr.labeled, names), path, key)
+
+
+def _stored_take(out: Path, store, key: str, name: str, names) -> tuple | None:
+    """A take finished by an earlier run with ``key``: (loader of its LabeledTake, stats,
+    capture, roles), or None."""
+    path = out / "trajectories" / f"{name}.parquet"
+    hit, saved = store.load_take(name, key, path)
+    if not hit:
+        return None
+    stats, capture, roles = saved
+
+    def load():
+        import pyarrow.parquet as pq
+
+        return labeled_take_from_table(pq.read_table(path, read_dictionary=["marker"]), names,
+                                       stats, capture.views)
+
+    return load, stats, capture, roles
+
+
+# --- the composer ----------------------------------------------------------------------------
+
+class _Keys:
+    """Every stage's key (``mocap.run_cache``): what each stage reads."""
+
+    def __init__(self, session: Session, settings: RunSettings, fp):
+        from mocap.run_cache import make_key
+
+        face = [t for t in session.takes if t.kind in FACE_KINDS]
+        template = (None if session.marker_template is None
+                    else session.marker_template.to_csv(index=False))
+        recon = {"reconstruction": settings.reconstruction, "labels": settings.labels}
+        rest = _rest_take(session)
+        if session.dimension == "2d":
+            by_kind = {k: [fp(t.file) for t in session.takes_of_kind(k)] for k in ("wand", "ground")}
+            self.calibrate = make_key("calibrate", cameras=session.cameras, wand=session.wand,
+                                      ground=session.ground, takes=by_kind)
+            self.markers = make_key("markers", calibrate=self.calibrate, template=template,
+                                    rest=fp(rest.file) if rest else None, **recon)
+        else:
+            self.calibrate = None
+            self.markers = make_key("markers3d", template=template,
+                                    takes=[(t.name, fp(t.file)) for t in face],
+                                    rest=rest.name if rest else None)
+        recorded = _recorded(session, settings)
+        self.takes = {t.name: make_key("take", markers=self.markers, file=fp(t.file),
+                                       fill_gaps_frames=settings.fill_gaps_frames,
+                                       record=t.name in recorded, **recon)
+                      for t in face}
+        commands = {t.name: fp(t.commands) for t in session.takes if t.commands is not None}
+        responses = [(t.name, t.du, t.trial, self.takes[t.name], commands.get(t.name))
+                     for t in session.takes_of_kind("response")]
+        rest_key = self.takes.get(rest.name) if rest else None
+        self.trials = make_key("trials", responses=responses, rest=rest_key, fps=session.fps,
+                               rejections=settings.rejections)
+        motions = [(t.name, t.plan, self.takes[t.name], commands.get(t.name))
+                   for t in session.takes_of_kind("motion")]
+        self.analyze = make_key("analyze", trials=self.trials, motions=motions, dus=session.dus,
+                                du_ids=session.du_ids, bootstrap=settings.bootstrap_samples)
+        self.audit = make_key("audit", trials=self.trials, calibrate=self.calibrate,
+                              takes=self.takes, min_cameras=settings.reconstruction.min_cameras,
+                              session=session.name)
+        self.recording = make_key("recording", analyze=self.analyze if settings.analyze else None,
+                                  audit=self.audit, commands=commands, du_ids=session.du_ids,
+                                  record_blobs=settings.record_blobs)
+
+
+class _Composer:
+    """One run's stages with their cache (``store`` None: compute all, write nothing)."""
+
+    def __init__(self, session: Session, out: Path | None, settings: RunSettings, say: Say,
+                 bars: bool | None, store):
+        self.session, self.out, self.settings = session, out, settings
+        self.say, self.bars, self.store = say, bars, store
+        self.keys = _Keys(session, settings, store.fingerprints) if store is not None else None
+        self.timings: dict[str, float] = {}
+        self.reused: list[str] = []
+        self.computed: list[str] = []
+
+    def stage(self, name: str, compute, write=None):
+        """The stage's result: reused when its key and files match, else computed and
+        written (``write(value) -> files``) then saved."""
+        t = time.perf_counter()
+        key = getattr(self.keys, name) if self.keys is not None else None
+        if self.store is not None:
+            hit, saved = self.store.load(name, key)
+            if hit and all(Path(self.out / f).exists() for f in saved[1]):
+                self.reused.append(name)
+                self.timings[f"{name}_s"] = time.perf_counter() - t
+                return saved[0]
+        value = compute()
+        files = write(value) if (write is not None and self.out is not None) else []
+        if self.store is not None:
+            rel = [str(Path(f).relative_to(self.out)) for f in files or []]
+            self.store.save(name, key, (value, rel))
+        self.computed.append(name)
+        self.timings[f"{name}_s"] = time.perf_counter() - t
+        return value
+
+    def reconstruction(self, calibration) -> Reconstruction:
+        session, settings, out, store = self.session, self.settings, self.out, self.store
+        t = time.perf_counter()
+        markers = self.stage("markers", lambda: find_markers(session, calibration, settings))
+        names = list(markers.names)
+        self.say(f"{len(names)} markers" + (" found on the rest take" if session.dimension == "2d" else ""))
+        face = [t.name for t in session.takes if t.kind in FACE_KINDS]
+        done: dict[str, TakeReconstruction] = {}
+        stored: dict[str, tuple] = {}
+        if store is not None:
+            for name in face:
+                st = _stored_take(out, store, self.keys.takes[name], name, names)
+                if st is not None:
+                    stored[name] = st
+        todo = [n for n in face if n not in stored]
+        if stored:
+            self.say(f"reusing {len(stored)} of {len(face)} reconstructed takes"
+                     + (f"; reconstructing {len(todo)}" if todo else ""))
+        for tr in _bar(_map_takes(session, todo, calibration, markers, settings,
+                                  _recorded(session, settings)), len(todo),
+                       "reconstructing takes", self.bars):
+            if out is not None:
+                _write_take(out, store, self.keys.takes[tr.name] if store else "", tr, names)
+            done[tr.name] = tr
+            s = tr.labeled.stats
+            self.say(f"  {tr.name}: {s.labeled_points} labeled points, "
+                     f"{s.missing_marker_frames} marker-frames missing")
+        n_reused = len(face) - len(todo)
+        if n_reused:
+            self.reused.append(f"reconstruct ({n_reused} of {len(face)} takes)")
+        if todo:
+            self.computed.append(f"reconstruct ({len(todo)} of {len(face)} takes)")
+        self.timings["reconstruct_s"] = time.perf_counter() - t
+        return assemble(session, markers, done, stored)
+
+    def run(self) -> RunResult:
+        session, settings, out, say = self.session, self.settings, self.out, self.say
+        t0 = time.perf_counter()
+        say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
+        changed = self.changed_settings()
+        if changed:
+            say(f"settings changed since the last run in {out}: {changed}")
+        # the manifest, the take headers and every command file are checked here; each take's
+        # rows are validated by the stage that reads them (read once)
+        t = time.perf_counter()
+        for take in session.takes:
+            if take.commands is not None:
+                session.read_commands(take.name)
+        self.timings["validate_s"] = time.perf_counter() - t
+        stages = ["validate"]
+
+        calibration = None
+        if session.dimension == "2d":
+            from mocap.calib.calibration_file import write_calibration
+
+            calibration = self.stage(
+                "calibrate", lambda: calibrate(session, progress=say),
+                lambda c: [write_calibration(out / "calibration.toml", c.rig, c.quality)])
+            stages.append("calibrate")
+            say(f"calibration {calibration.quality['rating']}")
+
+        recon = self.reconstruction(calibration)
+        stages.append("reconstruct" if session.dimension == "2d" else "load_labeled")
+
+        def write_trials(tr: Trials):
+            return [write_parquet(tr.responses, out / "responses.parquet"),
+                    write_csv(tr.rejections, out / "rejections.csv")]
+
+        trials = self.stage("trials", lambda: compute_trials(session, recon, settings), write_trials)
+        stages.append("trials")
+
+        analysis = None
+        if trials.averages and settings.analyze:
+            analysis = self.stage(
+                "analyze", lambda: analyze_session(session, recon, trials, settings),
+                lambda res: write_analysis(out, session, recon, trials, res, self.bars))
+            stages.append("analyze")
+            say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
+
+        from mocap.audit import audit_capture
+
+        audit = self.stage(
+            "audit", lambda: audit_capture(session.name, calibration, recon, trials.averages,
+                                           trials.rejections,
+                                           min_cameras=settings.reconstruction.min_cameras),
+            lambda a: write_audit_files(out, a, recon, calibration))
+        stages.append("audit")
+
+        result = RunResult(session, settings, calibration, recon, trials, analysis, audit, {},
+                           out, ())
+        if settings.recording and out is not None:
+            from mocap.recording import write_recording
+
+            self.stage("recording", lambda: None,
+                       lambda _: [write_recording(out / "session.rrd", result)])
+            stages.append("recording")
+            say(f"Rerun recording: {out / 'session.rrd'} "
+                f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
+        if self.reused:
+            say(f"reused from the earlier run in {out}: {', '.join(self.reused)}")
+            say(f"computed: {', '.join(self.computed) or 'nothing'}")
+        self.timings["total_s"] = time.perf_counter() - t0
+        summary = self.summary(stages, recon, trials, analysis, calibration, audit)
+        if out is not None:
+            write_text(out / "summary.json", json.dumps(summary, indent=2))
+            if self.store is not None:
+                self.store.fingerprints.save()
+        return replace(result, summary=summary, reused=tuple(self.reused),
+                       computed=tuple(self.computed))
+
+    def changed_settings(self) -> str:
+        """The settings that differ from the last run's summary.json, as text ('' if none)."""
+        if self.out is None or not (self.out / "summary.json").is_file():
+            return ""
+        try:
+            before = json.loads((self.out / "summary.json").read_text()).get("settings") or {}
+        except ValueError:
+            return ""
+
+        def flat(d, prefix=""):
+            for k, v in d.items():
+                if isinstance(v, dict):
+                    yield from flat(v, f"{prefix}{k}.")
+                else:
+                    yield f"{prefix}{k}", v
+
+        old, new = dict(flat(before)), dict(flat(to_dict(self.settings)))
+        return ", ".join(f"{k} {old[k]!r} -> {v!r}" for k, v in new.items()
+                         if k in old and old[k] != v and k != "jobs")
+
+    def summary(self, stages, recon, trials, analysis, calibration, audit) -> dict:
+        session = self.session
+        counts = {"takes": {}, "rows": 0}
+        for take in session.takes:
+            counts["takes"][take.kind] = counts["takes"].get(take.kind, 0) + 1
+        stats = recon.stats
+        counts["rows"] = int(sum(s.blobs or s.points for s in stats.values()))
+        names = list(recon.markers.names)
+        warnings_list = list(session.warnings) + [w for a in trials.averages for w in a.warnings]
+        summary = {
+            "session": {"name": session.name, "dir": str(Path(session.root).resolve()),
+                        "dimension": session.dimension, "fps": session.fps,
+                        "cameras": list(session.camera_ids), "dus": list(session.du_ids)},
+            "stages": stages,
+            "versions": _versions(),
+            "settings": to_dict(self.settings),
+            "reused": self.reused,
+            "computed": self.computed,
+            "timings_s": self.timings,
+            "counts": counts,
+            "warnings": warnings_list,
+            "markers": {"count": len(names), "names": names,
+                        "missing_from_template": list(recon.markers.missing_from_template)},
+            "reconstruction": {"takes": {n: asdict(s) for n, s in stats.items()},
+                               "labeled_points": recon.labeled_points},
+            "noise_floor_mm": recon.noise_floor_mm,
+            "rejections": {str(k): int(v) for k, v in
+                           trials.rejections["reason"].value_counts().items()},
+            "audit": {"verdict": audit["verdict"], "flagged": audit["flagged"]},
+        }
+        if analysis is not None:
+            summary["properties"] = analysis.properties[
+                ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean"]].to_dict("records")
+            summary["motion_evaluations"] = [
+                {"take": take, "plan": plan, "rms_forward": ev.rms_forward,
+                 "rms_backward": ev.rms_backward, "lag_s": ev.lag_s}
+                for take, plan, ev in analysis.motions]
+        if calibration is not None:
+            q = calibration.quality
+            summary["calibration"] = {k: q[k] for k in (
+                "rating", "reprojection_rms_px_all", "wand_length_error_mean_mm",
+                "wand_length_error_sd_mm", "point_error_mm") if k in q}
+        return summary
+
+
+def run(session: Session, out_dir: str | Path | None = None,
+        settings: RunSettings = RunSettings(), *, progress: Say | None = None,
+        bars: bool | None = False, force: bool = False) -> RunResult:
+    """Every stage on ``session``; the results, and (with ``out_dir``) OUTPUTS.md's files.
+
+    out_dir : None writes nothing at all. Otherwise the folder is locked for the run (a second
+        run into it is refused: ``mocap.run_lock.OutputInUse``), results of an earlier run with
+        the same keys are reused (``force``: recompute everything), and takes are written as
+        they finish, so a killed run resumes from them.
+    progress : called with a line of text per step; bars : tqdm progress bars on stderr (None:
+        when stderr is a terminal).
+    """
+    say = progress or _quiet
+    if out_dir is None:
+        return _Composer(session, None, settings, say, bars, None).run()
+    from mocap.run_cache import RunStore
+    from mocap.run_lock import RunLock
+
     out = Path(out_dir)
     check_output_path(out, sessions=[session.root])
     out.mkdir(parents=True, exist_ok=True)
-    say(f"session {session.name}: {len(session.takes)} takes, {session.dimension}")
+    with RunLock(out) as lock:
+        if lock.note:
+            say(lock.note)
+        return _Composer(session, out, settings, say, bars, RunStore(out, force)).run()
 
-    # the manifest, the take headers and every command file are checked here; each take's rows
-    # are validated by the stage that reads them (read once: 95 M blob rows in the paper study)
-    counts = {"takes": {}, "rows": 0}
-    t = time.perf_counter()
-    for take in session.takes:
-        counts["takes"][take.kind] = counts["takes"].get(take.kind, 0) + 1
-        if take.commands is not None:
-            session.read_commands(take.name)
-    timings["validate_s"] = time.perf_counter() - t
-    say(f"session checked: {len(session.takes)} takes, command files valid")
-    stages = ["validate"]
-    warnings_list = list(session.warnings)
 
-    calibration = None
-    if session.dimension == "2d":
-        from mocap.calib.calibration_file import write_calibration
-        from mocap.calib.wand_calibration import calibrate_session
-
-        t = time.perf_counter()
-        calibration = calibrate_session(session, progress=say)
-        write_calibration(out / "calibration.toml", calibration.rig, calibration.quality)
-        timings["calibrate_s"] = time.perf_counter() - t
-        stages.append("calibrate")
-        say(f"calibration {calibration.quality['rating']} in {timings['calibrate_s']:.1f} s")
-
-    # --- reconstruction (raw) or labeled input (3D) -> trajectories/<take>.parquet ----------
-    t = time.perf_counter()
-    recon = reconstruct_all(session, out, calibration, settings, say)
-    timings["reconstruct_s"] = time.perf_counter() - t
-    stages.append("reconstruct" if session.dimension == "2d" else "load_labeled")
-    counts["rows"] = int(sum(s.get("blobs", s.get("points", 0)) for s in recon.stats["takes"].values()))
-
-    # --- trials, noise floor, rejections -> responses.parquet, rejections.csv -----------------
-    t = time.perf_counter()
-    averages = average_responses(session, recon)
-    names = list(recon.markers.names)
-    if averages:
-        responses = pd.concat([responses_frame(a, names) for a in averages], ignore_index=True)
-    else:
-        responses = pd.DataFrame(columns=["du", "frame", "time_s", "command", "marker", "x", "y",
-                                          "z", "spread_mm", "n_trials", "displacement_mm", "delta"])
-    rejections = find_rejections(averages, names, settings.rejections)
-    rejected = set(zip(rejections["du"].astype("float").fillna(-1).astype(int), rejections["marker"]))
-    all_du = {m for d, m in rejected if d == -1}
-    responses["rejected"] = [(m in all_du) or ((d, m) in rejected)
-                             for d, m in zip(responses["du"], responses["marker"])] if len(responses) else []
-    write_parquet(responses, out / "responses.parquet")
-    write_csv(rejections, out / "rejections.csv")
-    timings["trials_s"] = time.perf_counter() - t
-    stages.append("trials")
-    for a in averages:
-        warnings_list.extend(a.warnings)
-
-    # --- analyses and figures -> properties.csv, linearity.csv, figures/ ---------------------
-    analysis_result = None
-    if averages and settings.analyze:
-        t = time.perf_counter()
-        analysis_result = run_analyses(session, recon, averages, rejections, out, say)
-        timings["analyze_s"] = time.perf_counter() - t
-        stages.append("analyze")
-
-    # --- capture-quality audit -> audit.json, audit.md --------------------------------------
-    t = time.perf_counter()
-    from mocap.audit import write_audit
-
-    partial = RunResult(session=session, out_dir=out, calibration=calibration,
-                        reconstruction=recon, averages=averages, rejections=rejections)
-    audit = write_audit(partial, out, min_cameras=settings.reconstruction.min_cameras)
-    from mocap.analysis.figures import audit_figures  # the audit's figures (outputs layer)
-    audit_figures(partial, audit, out)
-    timings["audit_s"] = time.perf_counter() - t
-    stages.append("audit")
-
-    # --- Rerun recording -> session.rrd ---------------------------------------------------
-    if settings.recording:
-        from mocap.recording import write_recording
-
-        t = time.perf_counter()
-        partial.analysis = analysis_result
-        partial.audit = audit
-        write_recording(out / "session.rrd", partial)
-        timings["recording_s"] = time.perf_counter() - t
-        stages.append("recording")
-        say(f"Rerun recording written: {out / 'session.rrd'} "
-            f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
-
-    summary = {
-        "session": {"name": session.name, "dir": str(Path(session_dir).resolve()),
-                    "dimension": session.dimension, "fps": session.fps,
-                    "cameras": list(session.camera_ids), "dus": list(session.du_ids)},
-        "stages": stages,
-        "versions": _versions(),
-        "timings_s": timings,
-        "counts": counts,
-        "warnings": warnings_list,
-        "markers": {"count": len(names), "names": names,
-                    "missing_from_template": list(recon.markers.missing_from_template)},
-        "reconstruction": recon.stats,
-        "noise_floor_mm": recon.noise_floor_mm,
-        "rejections": {str(k): int(v) for k, v in rejections["reason"].value_counts().items()},
-        "audit": {"verdict": audit["verdict"], "flagged": audit["flagged"]},
-    }
-    if analysis_result is not None:
-        summary["properties"] = analysis_result.properties[
-            ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean"]].to_dict("records")
-        summary["motion_evaluations"] = [
-            {"take": take, "plan": plan, "rms_forward": ev.rms_forward,
-             "rms_backward": ev.rms_backward, "lag_s": ev.lag_s}
-            for take, plan, ev in analysis_result.motions]
-    if calibration is not None:
-        q = calibration.quality
-        summary["calibration"] = {k: q[k] for k in (
-            "rating", "reprojection_rms_px_all", "wand_length_error_mean_mm",
-            "wand_length_error_sd_mm", "point_error_mm") if k in q}
-    timings["total_s"] = time.perf_counter() - t0
-    write_text(out / "summary.json", json.dumps(summary, indent=2))
-    return RunResult(session=session, out_dir=out, summary=summary, calibration=calibration,
-                     reconstruction=recon, averages=averages, rejections=rejections,
-                     analysis=analysis_result, audit=audit)
+def run_session(session_dir: str | Path, out_dir: str | Path | None,
+                progress: Say | None = None, settings: RunSettings = RunSettings(), *,
+                bars: bool | None = False, force: bool = False) -> RunResult:
+    """:func:`run` on the session folder ``session_dir`` (loaded and checked first)."""
+    return run(load_session(session_dir), out_dir, settings, progress=progress, bars=bars,
+               force=force)

@@ -1,6 +1,6 @@
 """The Rerun recording of a run: the only module that imports ``rerun``.
 
-``write_recording(path, result)`` turns a :class:`mocap.pipeline.RunResult` into a ``.rrd`` file
+``write_recording(path, result)`` turns a :class:`mocap.pipeline.RunResult` (read only) into a ``.rrd`` file
 (written to a temporary name, then renamed). It uses an explicit ``RecordingStream`` and Rerun's
 columnar ``send_columns`` for every series (no Python loop per frame). What it holds, on the
 capture's own timelines ``frame`` (sequence) and ``time`` (seconds; each take starts at 0):
@@ -155,31 +155,20 @@ def _log_rig_and_calibration(rec, rr, result, fps):
                              lengths=[len(calib.rig)] * F))
     # raw blobs of the takes kept for the recording, coloured by role
     recon = result.reconstruction
-    for take, (frame, cam, x, y, role) in recon.blob_roles.items():
+    for take, b in recon.blob_roles.items():
         for ci, cid in enumerate(calib.rig.ids):
-            sel = cam == ci
-            _points_over_time(rec, rr, f"world/cameras/{cid}/image/blobs/{take}", frame[sel], fps,
-                              np.column_stack([x[sel], y[sel]]), colors=ROLE_COLOURS[role[sel]])
+            sel = b.camera == ci
+            _points_over_time(rec, rr, f"world/cameras/{cid}/image/blobs/{take}", b.frame[sel], fps,
+                              np.column_stack([b.x[sel], b.y[sel]]), colors=ROLE_COLOURS[b.role[sel]])
 
 
 def _log_takes(rec, rr, result, fps, names):
-    import pandas as pd
-
     session = result.session
-    out = result.out_dir
-    M = len(names)
+    takes = result.reconstruction.takes
     for take in session.takes:
-        if take.kind not in ("rest", "response", "motion"):
+        if take.name not in takes:
             continue
-        path = out / "trajectories" / f"{take.name}.parquet"
-        if not path.is_file():
-            continue
-        kept = result.reconstruction.dense.get(take.name)
-        if kept is not None and kept.X.shape[1] == M:  # the trajectories written, still in memory
-            X = kept.X
-        else:
-            df = pd.read_parquet(path, columns=["frame", "x", "y", "z"])
-            X = df[["x", "y", "z"]].to_numpy().reshape(int(df["frame"].max()) + 1, M, 3)
+        X = takes[take.name].X
         n_frames = X.shape[0]
         ok = np.isfinite(X[..., 0])
         f_idx, m_idx = np.nonzero(ok)
@@ -206,7 +195,7 @@ def _log_responses(rec, rr, result, fps):
     res = result.analysis
     if res is None:
         return
-    for avg in result.averages:
+    for avg in result.trials.averages:
         p = res.du.get(avg.du)
         if p is None:
             continue
@@ -247,7 +236,7 @@ def _log_annotations(rec, rr, result, names):
             "(command units), both by the paper's method; colour = dyssynchrony, the "
             "noise-corrected estimate (blue low, red high).",
             media_type=rr.MediaType.MARKDOWN), static=True)
-    rej = result.rejections
+    rej = result.trials.rejections
     if rej is not None and len(rej):
         lines = ["| DU | marker | reason | value | threshold |", "|---|---|---|---|---|"]
         import pandas as pd
@@ -266,7 +255,7 @@ def _log_annotations(rec, rr, result, names):
         rec.log("world/rejected", rr.Points3D(pts[ok], radii=1.2, colors=RED,
                                               labels=[f"{names[i]}: {', '.join(sorted(set(why[names[i]])))}"
                                                       for i, k in zip(idx, ok) if k]), static=True)
-    audit = getattr(result, "audit", None)
+    audit = result.audit
     if audit:
         lines = [f"Audit verdict: **{audit['verdict']}**", ""]
         lines += [f"- {f['verdict']}: {f['kind']} {f['item']} ({f['why']})" for f in audit["flagged"]]

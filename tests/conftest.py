@@ -43,3 +43,24 @@ def sample_run(tmp_path_factory):
 
     root = Path(__file__).resolve().parents[1] / "sample_data" / "session"
     return run_session(root, tmp_path_factory.mktemp("sample_run"))
+
+
+TINY = dict(seed=5, du_ids=(4, 7), n_markers=20, n_trials=2, battery=False, motion_plans=("A",),
+            motion_dus=(4, 7), wand_duration_s=12.0)
+
+
+@pytest.fixture(scope="session")
+def tiny_sim(tmp_path_factory) -> Path:
+    """A tiny raw session (2 DUs, 2 trials, 20 markers, one plan take): root with session/, truth/."""
+    return make_session(tmp_path_factory.mktemp("tiny_sim"), **TINY)
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_sim, tmp_path_factory) -> Path:
+    """``mocap run --jobs 1 --no-recording`` on the tiny session, uninterrupted: its OUT_DIR."""
+    from mocap.cli import main
+
+    out = tmp_path_factory.mktemp("tiny_run") / "out"
+    assert main(["run", str(tiny_sim / "session"), "--out", str(out), "--jobs", "1",
+                 "--no-recording", "--quiet"]) == 0
+    return out

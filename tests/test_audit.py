@@ -109,3 +109,20 @@ def test_marker_no_camera_pair_sees_fails_by_name(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "never reconstructed" in out and nose in out
     assert nose in (root / "out" / "audit.md").read_text()
+
+
+def test_audit_judges_markers_by_the_runs_min_cameras():
+    """A marker seen by 2 cameras passes a --min-cameras 2 run and fails a 3-camera one."""
+    import numpy as np
+
+    from mocap.audit import audit_capture
+    from mocap.reconstruct.labeling import MarkerSet
+    from mocap.reconstruct.takes import CaptureCounts, Reconstruction
+
+    views = np.array([[90, 90, 90], [90, 90, 0], [90, 0, 0], [0, 0, 0]])  # (camera, marker)
+    cap = CaptureCounts(np.full(3, 90), 100, np.zeros(3, int), np.zeros(3, int), views=views)
+    recon = Reconstruction(MarkerSet(("a", "b", "c"), np.zeros((3, 3))), {}, {}, cap, None, None, {})
+    for k, expected in ((3, ["pass", "fail", "fail"]), (2, ["pass", "pass", "fail"])):
+        a = audit_capture("s", None, recon, (), None, min_cameras=k)
+        assert [m["verdicts"]["cameras"] for m in a["markers"]] == expected
+        assert [m["cameras"] for m in a["markers"]] == [3, 2, 1]

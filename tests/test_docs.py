@@ -7,9 +7,7 @@ import argparse
 import re
 from pathlib import Path
 
-import pytest
 
-import mocap
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -22,8 +20,6 @@ def python_blocks(text: str) -> list[str]:
     return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
 
 
-@pytest.mark.xfail(not hasattr(mocap, "run"), strict=False,
-                   reason="mocap.run and the Python API arrive with the pipe branch")
 def test_the_api_example_runs(tmp_path, monkeypatch):
     blocks = python_blocks((DOCS / "api.md").read_text(encoding="utf-8"))
     assert len(blocks) >= 3

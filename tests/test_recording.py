@@ -55,7 +55,7 @@ def test_recording_holds_rig_markers_and_plots(small_run, chunks):
 
 
 def test_recording_blob_colours_reflect_roles(small_run):
-    frame, cam, x, y, role = small_run.reconstruction.blob_roles["rest"]
+    role = small_run.reconstruction.blob_roles["rest"].role
     labels = pd.read_parquet(small_run.session.root.parent / "truth" / "labels" / "rest.parquet")["label"].to_numpy()
     # blobs labeled as markers are real markers; ghosts rarely are
     assert np.mean(labels[role == 0] >= 0) > 0.999

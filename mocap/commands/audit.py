@@ -27,13 +27,14 @@ def run(args: argparse.Namespace) -> int:
     from mocap.calib.wand_calibration import CalibrationError
     from mocap.paths import check_output_path
     from mocap.pipeline import RunSettings, run_session
+    from mocap.run_lock import OutputInUse
     from mocap.session import SessionError
 
     try:
         check_output_path(args.out, sessions=[args.session_dir])
         res = run_session(args.session_dir, args.out, settings=RunSettings(analyze=False),
                           progress=lambda m: print(m, file=sys.stderr, flush=True))
-    except (SessionError, CalibrationError) as e:
+    except (SessionError, CalibrationError, OutputInUse) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     a = res.summary["audit"]

@@ -258,7 +258,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
 
 
 def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
-    from mocap.analysis.figures import design_comparison
+    from mocap.analysis.figures import design_comparison, save
     from mocap.analysis.model_design import evaluate_design
     from mocap.design_io import play_virtual, virtual_face_of
 
@@ -278,6 +278,6 @@ def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
               f"(per marker {ev.rms_markers_forward:.4f} / {ev.rms_markers_backward:.4f}), "
               f"lag {ev.lag_s * 1000:.0f} ms")
     fig = args.out.with_name(args.out.stem + ".check.png")
-    design_comparison(fig, f"plan {args.plan}, DUs {dus}, hidden effect {cfg.effect.name}", evs)
+    save(design_comparison(f"plan {args.plan}, DUs {dus}, hidden effect {cfg.effect.name}", evs), fig)
     print(f"figure: {fig}")
     return 0

@@ -3,5 +3,9 @@
 - ``correspondence``: cross-camera matching of blobs by epipolar geometry, verified in the other
   cameras, and multi-view triangulation (all frames of a take at once);
 - ``labeling``: marker identities from the rest take, followed frame to frame;
-- ``trials``: trial averaging, noise floor and rejections.
+- ``trials``: trial averaging, noise floor and rejections;
+- ``takes``: a take's and a session's reconstruction results.
+
+The package is also the API's stage: ``mocap.reconstruct(session, calibration)`` calls
+``mocap.api.reconstruct`` (set up in ``mocap/__init__.py``).
 """

@@ -36,18 +36,9 @@ import pyarrow.compute as pc
 from mocap.calib.camera import CameraRig, camera_index
 from mocap.calib.triangulation_kernel import triangulate_normalized
 from mocap.reconstruct import correspondence_kernel as kern
+from mocap.reconstruct.settings import ReconstructionSettings  # noqa: F401  (its home before)
 
 _UNDISTORT_ITERATIONS = 20  # as mocap.calib.camera.undistort_normalized
-
-
-@dataclass(frozen=True)
-class ReconstructionSettings:
-    """Knobs of the correspondence search (px, mm)."""
-
-    min_cameras: int = 3
-    gate_min_px: float = 0.75
-    gate_sigmas: float = 6.0
-    max_depth_mm: float = 5000.0
 
 
 @dataclass(frozen=True)

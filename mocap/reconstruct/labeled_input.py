@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from mocap.reconstruct.labeling import LabeledTake
+from mocap.reconstruct.labeling import LabeledTake, TakeStats
 
 
 def marker_names_3d(takes: list[pd.DataFrame], template: pd.DataFrame | None) -> list[str]:
@@ -26,5 +26,8 @@ def dense_from_3d(df: pd.DataFrame, names: list[str]) -> LabeledTake:
     X = np.full((n_frames, len(names), 3), np.nan)
     X[f, m.astype(np.int64)] = df[["x", "y", "z"]].to_numpy(float)
     shape = (n_frames, len(names))
+    seen = int(np.isfinite(X[..., 0]).sum())
+    stats = TakeStats(points=seen, labeled_points=seen,
+                      missing_marker_frames=int(np.isnan(X[..., 0]).sum()))
     return LabeledTake(X, np.zeros(shape, np.int64), np.full(shape, np.nan), np.zeros(shape, bool),
-                       {"points": int(np.isfinite(X[..., 0]).sum())})
+                       stats)

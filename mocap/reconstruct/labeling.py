@@ -23,26 +23,19 @@ descending, rounded to 0.5 mm) then x ascending.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
-from mocap.reconstruct.correspondence import Points3D
-from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
+from mocap.reconstruct.settings import LabelSettings
 
+if TYPE_CHECKING:
+    from mocap.reconstruct.correspondence import Points3D
 
-@dataclass(frozen=True)
-class LabelSettings:
-    link_gate_mm: float = 2.0
-    max_gap_frames: int = 6
-    start_gate_mm: float = 3.0
-    min_presence: float = 0.5
-    template_gate_mm: float = 6.0
+# The compiled kernels and scipy's solvers are imported by the functions that use them, so that
+# the result types below load without them (a reused run reads them back from its cache).
 
 
 @dataclass(frozen=True)
@@ -52,6 +45,27 @@ class MarkerSet:
     names: tuple[str, ...]
     rest_mm: np.ndarray
     missing_from_template: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class TakeStats:
+    """Counts of one take's reconstruction.
+
+    points: 3D points (raw takes) or reconstructed marker-frames (labeled 3D input);
+    labeled_points: those given a marker; unlabeled_points: ghosts and fragments left out;
+    tracklets: chains of linked points; missing_marker_frames: (frame, marker) pairs not
+    reconstructed; interpolated_marker_frames: gap samples filled (``fill_gaps_frames``);
+    blobs: the take's 2D blobs; matched_blobs: those in a 3D point.
+    """
+
+    points: int
+    labeled_points: int
+    unlabeled_points: int = 0
+    tracklets: int = 0
+    missing_marker_frames: int = 0
+    interpolated_marker_frames: int = 0
+    blobs: int = 0
+    matched_blobs: int = 0
 
 
 @dataclass(frozen=True)
@@ -70,7 +84,7 @@ class LabeledTake:
     n_cameras: np.ndarray
     residual_px: np.ndarray
     interpolated: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: TakeStats
     views: np.ndarray | None = None
     blob_marker: np.ndarray | None = None
 
@@ -80,6 +94,8 @@ def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = L
 
     frame (n,) int; X (n, 3) mm. Tracklets are numbered in order of their lowest point index.
     """
+    from mocap.reconstruct.labeling_kernel import chain_labels, link_chains
+
     n = frame.size
     if n == 0:
         return np.zeros(0, np.int64)
@@ -101,6 +117,11 @@ def _tracklet_table(frame, X, comp):
 def identify_markers(points: Points3D, n_frames: int, template: pd.DataFrame | None = None,
                      settings: LabelSettings = LabelSettings()) -> MarkerSet:
     """The markers of a session from its rest take (see the module docstring)."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     comp = link_tracklets(points.frame, points.X, settings)
     order, starts, ends = _tracklet_table(points.frame, points.X, comp)
     # merge tracklets of one still marker split by gaps: cluster their medians
@@ -145,6 +166,8 @@ def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
 
     ``n_blobs`` (the take's blob count) enables ``blob_marker``, each blob's marker label.
     """
+    from scipy.optimize import linear_sum_assignment
+
     M = len(markers.names)
     X = np.full((n_frames, M, 3), np.nan)
     ncam = np.zeros((n_frames, M), np.int64)
@@ -182,14 +205,14 @@ def label_take(points: Points3D, markers: MarkerSet, n_frames: int,
     interp = np.zeros((n_frames, M), bool)
     if fill_gaps_frames > 0:
         X, interp = fill_gaps(X, fill_gaps_frames)
-    stats = {
-        "points": int(points.frame.size),
-        "labeled_points": int(sel.sum()),
-        "unlabeled_points": int((~sel).sum()),
-        "tracklets": int(starts.size),
-        "missing_marker_frames": int(np.isnan(X[..., 0]).sum()),
-        "interpolated_marker_frames": int(interp.sum()),
-    }
+    stats = TakeStats(
+        points=int(points.frame.size),
+        labeled_points=int(sel.sum()),
+        unlabeled_points=int((~sel).sum()),
+        tracklets=int(starts.size),
+        missing_marker_frames=int(np.isnan(X[..., 0]).sum()),
+        interpolated_marker_frames=int(interp.sum()),
+    )
     C = points.blob.shape[1]
     views = np.zeros((C, M), np.int64)
     pb = points.blob[sel]

@@ -36,17 +36,9 @@ import pandas as pd
 
 from mocap.reconstruct.displacement import normalized, normalized_along, peak_length, principal_direction
 from mocap.schedules import ScheduleTiming, timing_from_series
+from mocap.reconstruct.settings import RejectionSettings
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
-
-
-@dataclass(frozen=True)
-class RejectionSettings:
-    min_displacement_mm: float = 0.05
-    smooth_s: float = 0.25
-    spread_k: float = 5.0
-    spread_ratio: float = 2.0
-    max_gap_fraction: float = 0.05
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,252 @@
+"""Reusable, resumable, locked runs: a rerun reuses what did not change and says so; a killed run
+resumes and ends with the results of an uninterrupted one; one run at a time per folder."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import make_session
+from mocap.cli import main
+from mocap.run_lock import OutputInUse, RunLock
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLES = ("properties.csv", "linearity.csv", "marker_properties.csv", "rejections.csv")
+
+
+def mocap_run(session: Path, out: Path, *flags: str) -> None:
+    assert main(["run", str(session), "--out", str(out), "--jobs", "1", "--no-recording",
+                 *flags]) == 0
+
+
+def reused_line(stdout: str) -> str:
+    return next((ln for ln in stdout.splitlines() if ln.startswith("reused from")), "")
+
+
+def same_outputs(a: Path, b: Path, tables=TABLES) -> None:
+    """Every trajectory file and table of ``a`` equals ``b``'s."""
+    names = sorted(p.name for p in (b / "trajectories").glob("*.parquet"))
+    assert sorted(p.name for p in (a / "trajectories").glob("*.parquet")) == names
+    for name in names:
+        pd.testing.assert_frame_equal(pd.read_parquet(a / "trajectories" / name),
+                                      pd.read_parquet(b / "trajectories" / name))
+    pd.testing.assert_frame_equal(pd.read_parquet(a / "responses.parquet"),
+                                  pd.read_parquet(b / "responses.parquet"))
+    for t in tables:
+        pd.testing.assert_frame_equal(pd.read_csv(a / t), pd.read_csv(b / t))
+
+
+def stamps(folder: Path) -> dict:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(folder.glob("*"))}
+
+
+@pytest.fixture
+def copy_of_run(tiny_run, tmp_path) -> Path:
+    out = tmp_path / "out"
+    shutil.copytree(tiny_run, out)  # modification times kept
+    return out
+
+
+def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, capsys):
+    before = stamps(copy_of_run / "trajectories")
+    mocap_run(tiny_sim / "session", copy_of_run)
+    out = capsys.readouterr().out
+    assert reused_line(out) == ("reused from the earlier run: calibrate, markers, reconstruct "
+                                "(6 of 6 takes), trials, analyze, audit; computed: nothing")
+    assert stamps(copy_of_run / "trajectories") == before  # not even rewritten
+    same_outputs(copy_of_run, tiny_run)
+    summary = json.loads((copy_of_run / "summary.json").read_text())
+    assert summary["computed"] == [] and "audit" in summary["reused"]
+    # the library call reads the reused results back, each take when asked for
+    from mocap.pipeline import RunSettings, run_session
+    from mocap.reconstruct.takes import LazyTakes
+
+    res = run_session(tiny_sim / "session", copy_of_run, settings=RunSettings(jobs=1, recording=False))
+    assert res.computed == () and isinstance(res.reconstruction.takes, LazyTakes)
+    for take, X in res.arrays.items():
+        ref = pd.read_parquet(tiny_run / "trajectories" / f"{take}.parquet")
+        np.testing.assert_array_equal(X.reshape(-1, 3), ref[["x", "y", "z"]].to_numpy())
+        lab = res.reconstruction.takes[take]
+        np.testing.assert_array_equal(lab.n_cameras.ravel(), ref["n_cameras"].to_numpy())
+        np.testing.assert_array_equal(lab.interpolated.ravel(), ref["interpolated"].to_numpy())
+    pd.testing.assert_frame_equal(res.properties.reset_index(drop=True),
+                                  pd.read_csv(tiny_run / "properties.csv"), check_dtype=False)
+
+
+def test_analysis_setting_change_reuses_the_reconstruction(tiny_sim, tiny_run, copy_of_run, capsys):
+    before = stamps(copy_of_run / "trajectories")
+    mocap_run(tiny_sim / "session", copy_of_run, "--bootstrap-samples", "20")
+    cap = capsys.readouterr()
+    assert "settings changed since the last run" in cap.err and "bootstrap_samples 200 -> 20" in cap.err
+    line = reused_line(cap.out)
+    assert line == ("reused from the earlier run: calibrate, markers, reconstruct (6 of 6 takes), "
+                    "trials, audit; computed: analyze")
+    assert stamps(copy_of_run / "trajectories") == before
+    new, ref = (pd.read_csv(d / "properties.csv") for d in (copy_of_run, tiny_run))
+    np.testing.assert_array_equal(new["sensitivity"], ref["sensitivity"])  # the fits themselves
+    ci = [c for c in ref.columns if c.endswith("_ci_lo")]
+    assert ci and not new[ci].equals(ref[ci])  # the bootstrap intervals changed
+    assert json.loads((copy_of_run / "summary.json").read_text())["settings"]["bootstrap_samples"] == 20
+    # a rejection setting: trials and what follows them, still no reconstruction
+    mocap_run(tiny_sim / "session", copy_of_run, "--bootstrap-samples", "20",
+              "--min-displacement-mm", "0.3")
+    line = reused_line(capsys.readouterr().out)
+    assert line == ("reused from the earlier run: calibrate, markers, reconstruct (6 of 6 takes); "
+                    "computed: trials, analyze, audit")
+    rej = pd.read_csv(copy_of_run / "rejections.csv")
+    assert (rej.loc[rej["reason"] == "small_displacement", "threshold"] == 0.3).all()
+    # and back to the defaults: the earlier results, identical
+    mocap_run(tiny_sim / "session", copy_of_run)
+    same_outputs(copy_of_run, tiny_run)
+
+
+def test_changed_take_file_recomputes_that_take_only(tiny_sim, tiny_run, copy_of_run, tmp_path,
+                                                     capsys):
+    session = tmp_path / "session"
+    shutil.copytree(tiny_sim / "session", session)
+    take = session / "takes" / "du07_t02.parquet"
+    blobs = pd.read_parquet(take)
+    blobs[blobs["frame"] != 100].to_parquet(take, index=False)  # frame 100 edited out
+    mocap_run(session, copy_of_run)
+    line = reused_line(capsys.readouterr().out)
+    assert line == ("reused from the earlier run: calibrate, markers, reconstruct (5 of 6 takes); "
+                    "computed: reconstruct (1 of 6 takes), trials, analyze, audit")
+    df = pd.read_parquet(copy_of_run / "trajectories" / "du07_t02.parquet")
+    assert df.loc[df["frame"] == 100, "x"].isna().all()
+    assert df.loc[df["frame"] == 101, "x"].notna().mean() > 0.9
+    for name in ("du04_t01.parquet", "rest.parquet"):
+        pd.testing.assert_frame_equal(pd.read_parquet(copy_of_run / "trajectories" / name),
+                                      pd.read_parquet(tiny_run / "trajectories" / name))
+
+
+def test_keys_follow_content_not_paths_or_times(tiny_sim, copy_of_run, tmp_path, capsys):
+    session = tmp_path / "elsewhere" / "session"
+    shutil.copytree(tiny_sim / "session", session)
+    os.utime(session / "takes" / "du04_t01.parquet", (1e9, 1e9))  # touched, same bytes
+    mocap_run(session, copy_of_run)
+    assert reused_line(capsys.readouterr().out).endswith("computed: nothing")
+
+
+def test_force_recomputes_everything(tmp_path, capsys):
+    root = make_session(tmp_path / "lab", du_ids=(4,), n_trials=2, n_markers=12,
+                        motion_plans=(), battery=False, labeled=True, seed=6)
+    mocap_run(root / "session", tmp_path / "out", "--quiet")
+    assert reused_line(capsys.readouterr().out) == ""  # a first run reuses nothing
+    mocap_run(root / "session", tmp_path / "out", "--quiet")
+    assert "reconstruct (3 of 3 takes)" in reused_line(capsys.readouterr().out)
+    before = stamps(tmp_path / "out" / "trajectories")
+    mocap_run(root / "session", tmp_path / "out", "--quiet", "--force")
+    assert reused_line(capsys.readouterr().out) == ""
+    after = stamps(tmp_path / "out" / "trajectories")
+    assert all(after[k] > before[k] for k in before)  # every take written again
+
+
+def test_killed_run_resumes_to_the_uninterrupted_results(tiny_sim, tiny_run, tmp_path, capsys):
+    out = tmp_path / "out"
+    faces = sorted(p.name for p in (tiny_run / "trajectories").glob("*.parquet"))
+    proc = subprocess.Popen([sys.executable, "-m", "mocap.cli", "run", str(tiny_sim / "session"),
+                             "--out", str(out), "--jobs", "1", "--no-recording", "--quiet"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 900
+    while time.monotonic() < deadline and proc.poll() is None:
+        if len(list((out / "trajectories").glob("*.parquet"))) >= 2:
+            break
+        time.sleep(0.005)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    os.kill(proc.pid, signal.SIGKILL)  # in the middle of the reconstruction
+    proc.wait()
+    finished = len(list((out / "trajectories").glob("*.parquet")))
+    assert 2 <= finished < len(faces)
+    assert not (out / "summary.json").exists() and (out / ".facemocap" / "lock").exists()
+
+    mocap_run(tiny_sim / "session", out)
+    cap = capsys.readouterr()
+    assert "took over a stale lock" in cap.err and f"pid {proc.pid}" in cap.err
+    assert f"reusing {finished} of {len(faces)} reconstructed takes" in cap.err
+    assert (f"reconstruct ({finished} of {len(faces)} takes)" in reused_line(cap.out))
+    same_outputs(out, tiny_run)
+    assert json.loads((out / "summary.json").read_text())["properties"] == \
+        json.loads((tiny_run / "summary.json").read_text())["properties"]
+    assert not list(out.rglob(".*.tmp"))  # no half-written file left behind
+    assert not (out / ".facemocap" / "lock").exists()  # released
+
+
+# --- the lock --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def lab_session(tmp_path_factory) -> Path:
+    root = make_session(tmp_path_factory.mktemp("lab"), du_ids=(4,), n_trials=2, n_markers=12,
+                        motion_plans=(), battery=False, labeled=True, seed=8)
+    return root / "session"
+
+
+def test_second_run_into_a_folder_in_use_is_refused(lab_session, tmp_path, capsys):
+    out = tmp_path / "out"
+    with RunLock(out):
+        assert main(["run", str(lab_session), "--out", str(out), "--quiet"]) == 1
+        err = capsys.readouterr().err
+        assert f"{out} is in use by another run (pid {os.getpid()} on {socket.gethostname()}" in err
+        assert sorted(p.name for p in out.iterdir()) == [".facemocap"]  # nothing written
+    assert main(["run", str(lab_session), "--out", str(out), "--quiet"]) == 0  # free again
+
+
+def dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+    lock = tmp_path / ".facemocap" / "lock"
+    lock.parent.mkdir()
+    pid = dead_pid()
+    lock.write_text(json.dumps({"pid": pid, "host": socket.gethostname(), "started": None,
+                                "date": "2026-01-01T00:00:00"}))
+    with RunLock(tmp_path) as held:
+        assert held.note is not None and f"pid {pid}" in held.note and "stale" in held.note
+        assert json.loads(lock.read_text())["pid"] == os.getpid()
+    assert not lock.exists()
+
+
+def test_lock_of_another_host_is_refused_with_advice(tmp_path):
+    lock = tmp_path / ".facemocap" / "lock"
+    lock.parent.mkdir()
+    lock.write_text(json.dumps({"pid": 1, "host": "elsewhere.example", "date": "today"}))
+    with pytest.raises(OutputInUse, match=r"elsewhere\.example.*remove .*lock"):
+        with RunLock(tmp_path):
+            pass
+    assert json.loads(lock.read_text())["host"] == "elsewhere.example"  # left alone
+
+
+TRY_LOCK = r"""
+import sys, time
+from mocap.run_lock import OutputInUse, RunLock
+start = float(sys.argv[2])
+while time.time() < start:
+    time.sleep(0.001)
+try:
+    with RunLock(sys.argv[1]):
+        time.sleep(5.0)
+    print("got it")
+except OutputInUse:
+    print("refused")
+"""
+
+
+def test_one_of_many_simultaneous_runs_gets_the_lock(tmp_path):
+    start = time.time() + 4.0
+    procs = [subprocess.Popen([sys.executable, "-c", TRY_LOCK, str(tmp_path), str(start)],
+                              stdout=subprocess.PIPE, text=True) for _ in range(6)]
+    outcomes = sorted(p.communicate(timeout=120)[0].strip() for p in procs)
+    assert outcomes == ["got it"] + ["refused"] * 5
