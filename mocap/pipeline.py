@@ -25,6 +25,7 @@ from mocap import __version__
 from mocap.analysis.paper_indices import schedule_timing
 from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.paths import check_output_path
+from mocap.reconstruct.camera_count import usable_samples
 from mocap.reconstruct.correspondence import (
     ReconstructionSettings,
     blob_camera_index,
@@ -210,7 +211,8 @@ def reconstruct_take(session: Session, out: Path, rig, quality, markers: MarkerS
         role[pts.blob[pts.blob >= 0]] = 1  # in a point that got no marker
         role[lab.blob_marker >= 0] = 0  # labeled
         roles = (blobs["frame"].to_numpy(), cam_idx, blobs["x"].to_numpy(), blobs["y"].to_numpy(), role)
-    return {"stats": lab.stats, "capture": capture, "labeled": lab if keep else None, "roles": roles}
+    kept = usable_samples(lab, settings.reconstruction.min_cameras) if keep else None  # analyses' samples
+    return {"stats": lab.stats, "capture": capture, "labeled": kept, "roles": roles}
 
 
 def _worker_init() -> None:

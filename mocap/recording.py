@@ -175,7 +175,8 @@ def _log_takes(rec, rr, result, fps, names):
         if not path.is_file():
             continue
         kept = result.reconstruction.dense.get(take.name)
-        if kept is not None and kept.X.shape[1] == M:  # the trajectories written, still in memory
+        if (kept is not None and kept.X.shape[1] == M  # the trajectories written, still in memory,
+                and not kept.stats.get("below_min_cameras")):  # unless masked for the analyses
             X = kept.X
         else:
             df = pd.read_parquet(path, columns=["frame", "x", "y", "z"])
