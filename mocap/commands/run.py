@@ -25,7 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--all-blobs", action="store_true",
                    help="record the 2D blobs of every take (default: wand, rest, first response)")
     p.add_argument("--min-cameras", type=int, default=3,
-                   help="cameras a 3D point needs (default 3, as the paper; 2 is the minimum)")
+                   help="cameras a sample needs to enter the analyses (default 3, as the paper; "
+                        "2 is the minimum); points two cameras see are always in the trajectories")
     p.add_argument("--fill-gaps", type=int, default=0, metavar="FRAMES",
                    help="interpolate gaps up to FRAMES frames (flagged in the trajectories)")
 
