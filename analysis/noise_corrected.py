@@ -225,8 +225,9 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     k_mean = np.maximum(np.nanmean(np.where(ok, n_trials, np.nan), axis=0), 1)
     second = (np.einsum("fmi,fmj->mij", Z, Z) / np.maximum(ok.sum(axis=0), 1)[:, None, None]
               - noise_cov / k_mean[:, None, None])
-    _, vec = np.linalg.eigh(second)
-    u = vec[..., -1]
+    unseen = ~np.isfinite(second).all(axis=(1, 2))  # a marker no sample of which is usable
+    _, vec = np.linalg.eigh(np.where(unseen[:, None, None], np.eye(3), second))
+    u = np.where(unseen[:, None], np.nan, vec[..., -1])
     p = np.einsum("fmk,mk->fm", d, u)
     # signed so that the hold (not the noise's largest excursion) lies ahead
     hold = hold_frames(n, timing, fps)

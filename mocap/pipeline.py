@@ -31,6 +31,7 @@ import pandas as pd
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.paths import check_output_path
+from mocap.reconstruct.camera_count import usable_positions
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
 from mocap.reconstruct.labeling import MarkerSet, identify_markers, trajectories_frame
 from mocap.reconstruct.takes import (
@@ -333,15 +334,17 @@ def reconstruct(session: Session, calibration=None, settings: RunSettings = RunS
     return assemble(session, markers, done)
 
 
-def average_responses(session: Session, recon: Reconstruction) -> list[TrialAverage]:
-    """Per DU, its response takes averaged over trials."""
+def average_responses(session: Session, recon: Reconstruction,
+                      min_cameras: int = 3) -> list[TrialAverage]:
+    """Per DU, its response takes averaged over trials, from the samples at least
+    ``min_cameras`` cameras saw (``mocap.reconstruct.camera_count``)."""
     out = []
     by_du: dict[int, list] = {}
     for take in session.takes_of_kind("response"):
         by_du.setdefault(int(take.du), []).append(take)
     for du, takes in sorted(by_du.items()):
         takes = sorted(takes, key=lambda t: (t.trial or 0, t.name))
-        X = [recon.takes[t.name].X for t in takes]
+        X = [usable_positions(recon.takes[t.name], min_cameras) for t in takes]
         rows = [session.read_commands(t.name) for t in takes]
         cmds = [command_matrix(r, session.fps, x.shape[0], [du])[:, 0] for r, x in zip(rows, X)]
         first = rows[0][rows[0]["du"] == du]
@@ -354,7 +357,7 @@ def average_responses(session: Session, recon: Reconstruction) -> list[TrialAver
 def compute_trials(session: Session, recon: Reconstruction, settings: RunSettings = RunSettings()
                    ) -> Trials:
     """Trials averaged per DU, the responses table and the rejections."""
-    averages = average_responses(session, recon)
+    averages = average_responses(session, recon, settings.reconstruction.min_cameras)
     names = list(recon.markers.names)
     if averages:
         responses = pd.concat([responses_frame(a, names) for a in averages], ignore_index=True)
@@ -381,6 +384,8 @@ def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
         kept_markers,
     )
 
+    min_cameras = settings.reconstruction.min_cameras
+
     names = list(recon.markers.names)
     du_names = {d.id: d.name for d in session.dus}
     noise, noise_cov = None, None
@@ -388,7 +393,7 @@ def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
     if recon.noise_per_marker_mm is not None:
         noise = np.sqrt(np.nanmean(recon.noise_per_marker_mm**2, axis=1))
         if rest is not None and rest.name in recon.takes:
-            noise_cov = position_covariance(recon.takes[rest.name].X)[0]
+            noise_cov = position_covariance(usable_positions(recon.takes[rest.name], min_cameras))[0]
     res = analyze_responses(list(trials.averages), names, trials.rejections, du_names,
                             n_boot=settings.bootstrap_samples, noise_mm=noise,
                             noise_cov_mm2=noise_cov)
@@ -398,7 +403,7 @@ def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
     for take in session.takes_of_kind("motion"):
         if not is_plan(take.plan) or take.commands is None or take.name not in recon.takes:
             continue
-        X = recon.takes[take.name].X
+        X = usable_positions(recon.takes[take.name], min_cameras)
         rows = session.read_commands(take.name)
         cmd = command_matrix(rows, session.fps, X.shape[0], list(session.du_ids))
         # evaluated over the markers its DUs move well (those in their response fits)

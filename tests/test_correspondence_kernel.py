@@ -45,17 +45,19 @@ def test_compiled_correspondence_matches_numpy_reference(small_sim, small_run, t
 
 
 def test_compiled_correspondence_matches_reference_with_two_cameras(small_sim, small_run):
-    """min_cameras = 2 takes bare epipolar pairs when unique: the other acceptance rule."""
+    """Bare epipolar pairs, taken when unique after the 3+-view pass: the other acceptance rule
+    (whatever ``min_cameras``, which only masks the analyses' samples)."""
     rig, quality = small_run.calibration.rig, small_run.calibration.quality
     blobs = read_take(small_sim, "du07_t02")
-    # drop most of two cameras' blobs so that many markers are seen by two cameras only
+    # drop most of three cameras' blobs so that many markers are seen by two cameras only
     rng = np.random.default_rng(3)
-    drop = blobs["camera"].isin(rig.ids[:2]).to_numpy() & (rng.random(len(blobs)) < 0.8)
+    drop = blobs["camera"].isin(rig.ids[:3]).to_numpy() & (rng.random(len(blobs)) < 0.8)
     blobs = blobs[~drop].reset_index(drop=True)
-    s = ReconstructionSettings(min_cameras=2)
-    new = reconstruct_points(blobs, rig, quality, s)
-    assert_same_points(new, reconstruct_points_reference(blobs, rig, quality, s))
+    new = reconstruct_points(blobs, rig, quality)
+    assert_same_points(new, reconstruct_points_reference(blobs, rig, quality))
     assert (new.n_cameras == 2).sum() > 100
+    s = ReconstructionSettings(min_cameras=2)
+    assert_same_points(reconstruct_points(blobs, rig, quality, s), new)
 
 
 def test_compiled_correspondence_is_right_against_the_truth(small_sim, small_run):

@@ -42,7 +42,8 @@ def test_trajectory_files_follow_outputs(small_run):
         assert col in df.columns
     assert pd.api.types.is_integer_dtype(df["frame"]) and pd.api.types.is_integer_dtype(df["n_cameras"])
     seen = df["x"].notna()
-    assert (df.loc[seen, "n_cameras"] >= 3).all()
+    assert (df.loc[seen, "n_cameras"] >= 2).all()  # 2-view points are kept, not analysed
+    assert (df.loc[seen, "n_cameras"] == 2).mean() < 0.02  # a clean session: rare
     assert (df.loc[seen, "residual_px"] < 0.5).all()
     assert df.loc[~seen, "residual_px"].isna().all()
 

@@ -10,9 +10,15 @@ For camera pairs in order of decreasing baseline:
    checked against the pair's gate;
 2. each candidate pair is triangulated and projected into every other camera, where the nearest
    blob of the same frame within that camera's gate, when unused, counts as support;
-3. candidates seen by at least ``min_cameras`` cameras (2-view candidates only when
-   ``min_cameras`` is 2 and their epipolar match is unique) are kept, one per blob (the most
-   supported, then the smallest residual, wins), and their blobs leave the pool.
+3. candidates seen by at least 3 cameras are kept, one per blob (the most supported, then the
+   smallest residual, wins), and their blobs leave the pool.
+
+A second pass over the pairs then keeps, among the blobs left, the bare 2-view candidates whose
+epipolar match is unique (each of their blobs has no other candidate): a marker that only two
+cameras see (a shadowed nose bridge) is reconstructed with ``n_cameras`` 2 and its residual,
+after 3+-view points have claimed their blobs. Which points the analyses use is not decided
+here: :func:`mocap.reconstruct.camera_count.usable_samples` masks the samples seen by fewer than
+``ReconstructionSettings.min_cameras`` cameras before trials are averaged.
 
 Accepted points are triangulated from all their views (linear, then Gauss-Newton); views whose
 reprojection error exceeds their camera's gate are dropped and the point re-solved. Gates are per
@@ -209,28 +215,29 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
     best = np.full(n_blobs, -1, np.int64)  # scratch of one_point_per_blob
     pairs = sorted(combinations(range(C), 2),
                    key=lambda p: -np.linalg.norm(rp.centre[p[0]] - rp.centre[p[1]]))
-    min_cams = max(2, int(settings.min_cameras))
     accepted: list[np.ndarray] = []
     # the blobs the candidate search walks: dropped from the buckets once most are used
     pool = (index.ptr, index.order)
     n_pool = n_unused = n_blobs
-    for a, b in pairs:
-        if n_unused < n_pool // 2:
-            pool = kern.compact_buckets(*pool, used)
-            n_pool = n_unused
-        views = _pair_points(bt, rig, rp, index, pool, a, b, gates, used, settings.max_depth_mm,
-                             min_cams)
-        if views.shape[0] == 0:
-            continue
-        views = _one_point_per_blob(views, bt, rp, best)
-        if views.shape[0] == 0:
-            continue
-        accepted.append(views)
-        kern.mark_used(views, used)
-        n_unused -= int(np.count_nonzero(views >= 0))  # accepted views are all unused blobs
+    # 3+-view candidates first, over every pair; then bare epipolar pairs among the blobs left
+    for min_cams in (3, 2):
+        for a, b in pairs:
+            if n_unused < n_pool // 2:
+                pool = kern.compact_buckets(*pool, used)
+                n_pool = n_unused
+            views = _pair_points(bt, rig, rp, index, pool, a, b, gates, used,
+                                 settings.max_depth_mm, min_cams)
+            if views.shape[0] == 0:
+                continue
+            views = _one_point_per_blob(views, bt, rp, best)
+            if views.shape[0] == 0:
+                continue
+            accepted.append(views)
+            kern.mark_used(views, used)
+            n_unused -= int(np.count_nonzero(views >= 0))  # accepted views are all unused blobs
     if not accepted:
         return _empty_points(C)
-    return _final_triangulation(np.concatenate(accepted), bt, rp, gates, min_cams)
+    return _final_triangulation(np.concatenate(accepted), bt, rp, gates, 2)
 
 
 def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex,
@@ -290,7 +297,7 @@ def _one_point_per_blob(views: np.ndarray, bt: BlobTable, rp: RigArrays,
 def _final_triangulation(views: np.ndarray, bt: BlobTable, rp: RigArrays, gates: np.ndarray,
                          min_cams: int) -> Points3D:
     """Points of the accepted rows views (m, C): solved from all views, re-solved without the
-    views beyond their camera's gate, kept with ``min_cams`` views; sorted by frame."""
+    views beyond their camera's gate, kept with ``min_cams`` (2) views or more; sorted by frame."""
     X, err = _solve_views(views, bt, rp)
     views, changed = kern.drop_bad_views(views, err, gates)
     if changed.any():

@@ -116,61 +116,62 @@ def reconstruct_points_reference(blobs: pd.DataFrame, rig: CameraRig, quality: d
     pairs = sorted(combinations(range(C), 2),
                    key=lambda p: -np.linalg.norm(centres[p[0]] - centres[p[1]]))
     accepted: list[np.ndarray] = []
-    min_cams = max(2, int(settings.min_cameras))
-    for a, b in pairs:
-        ia = np.flatnonzero((bt.cam == a) & ~used)
-        ib = np.flatnonzero((bt.cam == b) & ~used)
-        if ia.size == 0 or ib.size == 0:
-            continue
-        pa, pb = _pair_candidates(bt, rig, a, b, ia, ib, max(gates[a], gates[b]))
-        if pa.size == 0:
-            continue
-        n = pa.size
-        xn = np.full((C, n, 2), np.nan)
-        xn[a], xn[b] = bt.xn[pa], bt.xn[pb]
-        X = triangulate_normalized(Rt, focal, xn, 0)
-        views = np.full((n, C), -1, np.int64)
-        views[:, a], views[:, b] = pa, pb
-        depth_ok = np.ones(n, bool)
-        for c in (a, b):
-            z = (X @ rig[c].R.T + rig[c].t)[:, 2]
-            depth_ok &= (z > 0) & (z < settings.max_depth_mm)
-        for c in range(C):
-            if c in (a, b) or trees[c][0] is None:
+    # 3+-view candidates over every pair first, then unique bare pairs among the blobs left
+    for min_cams in (3, 2):
+        for a, b in pairs:
+            ia = np.flatnonzero((bt.cam == a) & ~used)
+            ib = np.flatnonzero((bt.cam == b) & ~used)
+            if ia.size == 0 or ib.size == 0:
                 continue
-            uv = rig[c].project(X)
-            q = np.column_stack([bt.frame[pa] * _FRAME_SPACING, uv])
-            good = np.all(np.isfinite(q), axis=1)
-            dist = np.full(n, np.inf)
-            j = np.full(n, -1)
-            if good.any():
-                dist[good], j[good] = trees[c][0].query(q[good], k=1, distance_upper_bound=gates[c])
-            hit = np.isfinite(dist)
-            blob_c = np.where(hit, trees[c][1][np.minimum(j, trees[c][1].size - 1)], -1)
-            hit &= blob_c >= 0
-            hit[hit] &= ~used[blob_c[hit]]
-            views[hit, c] = blob_c[hit]
-        support = (views >= 0).sum(axis=1)
-        keep = depth_ok & (support >= min_cams)
-        if min_cams == 2:
-            # a bare epipolar pair is trusted only when it is its blobs' only candidate
-            ua, ca_ = np.unique(pa, return_counts=True)
-            ub, cb_ = np.unique(pb, return_counts=True)
-            uniq = (ca_[np.searchsorted(ua, pa)] == 1) & (cb_[np.searchsorted(ub, pb)] == 1)
-            keep = depth_ok & ((support >= 3) | uniq)
-        if not keep.any():
-            continue
-        views, X = views[keep], X[keep]
-        views = _one_point_per_blob(views, bt, rig, Rt, focal)
-        if views.size == 0:
-            continue
-        accepted.append(views)
-        used[views[views >= 0]] = True
+            pa, pb = _pair_candidates(bt, rig, a, b, ia, ib, max(gates[a], gates[b]))
+            if pa.size == 0:
+                continue
+            n = pa.size
+            xn = np.full((C, n, 2), np.nan)
+            xn[a], xn[b] = bt.xn[pa], bt.xn[pb]
+            X = triangulate_normalized(Rt, focal, xn, 0)
+            views = np.full((n, C), -1, np.int64)
+            views[:, a], views[:, b] = pa, pb
+            depth_ok = np.ones(n, bool)
+            for c in (a, b):
+                z = (X @ rig[c].R.T + rig[c].t)[:, 2]
+                depth_ok &= (z > 0) & (z < settings.max_depth_mm)
+            for c in range(C):
+                if c in (a, b) or trees[c][0] is None:
+                    continue
+                uv = rig[c].project(X)
+                q = np.column_stack([bt.frame[pa] * _FRAME_SPACING, uv])
+                good = np.all(np.isfinite(q), axis=1)
+                dist = np.full(n, np.inf)
+                j = np.full(n, -1)
+                if good.any():
+                    dist[good], j[good] = trees[c][0].query(q[good], k=1, distance_upper_bound=gates[c])
+                hit = np.isfinite(dist)
+                blob_c = np.where(hit, trees[c][1][np.minimum(j, trees[c][1].size - 1)], -1)
+                hit &= blob_c >= 0
+                hit[hit] &= ~used[blob_c[hit]]
+                views[hit, c] = blob_c[hit]
+            support = (views >= 0).sum(axis=1)
+            keep = depth_ok & (support >= min_cams)
+            if min_cams == 2:
+                # a bare epipolar pair is trusted only when it is its blobs' only candidate
+                ua, ca_ = np.unique(pa, return_counts=True)
+                ub, cb_ = np.unique(pb, return_counts=True)
+                uniq = (ca_[np.searchsorted(ua, pa)] == 1) & (cb_[np.searchsorted(ub, pb)] == 1)
+                keep = depth_ok & ((support >= 3) | uniq)
+            if not keep.any():
+                continue
+            views, X = views[keep], X[keep]
+            views = _one_point_per_blob(views, bt, rig, Rt, focal)
+            if views.size == 0:
+                continue
+            accepted.append(views)
+            used[views[views >= 0]] = True
     if not accepted:
         return Points3D(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64),
                         np.zeros(0), np.zeros((0, C), np.int64))
     views = np.concatenate(accepted)
-    return _final_triangulation(views, bt, rig, Rt, focal, gates, min_cams)
+    return _final_triangulation(views, bt, rig, Rt, focal, gates, 2)
 
 
 def _solve_views(views, bt, rig, Rt, focal):

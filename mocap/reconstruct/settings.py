@@ -12,10 +12,16 @@ from dataclasses import dataclass, field
 
 @dataclass(frozen=True)
 class ReconstructionSettings:
-    """Knobs of the correspondence search (px, mm)."""
+    """Knobs of the correspondence search (px, mm).
+
+    ``min_cameras``: the fewest cameras a sample needs to enter the analyses (trial averages,
+    noise floor, properties; :mod:`mocap.reconstruct.camera_count`). The reconstruction itself
+    always keeps 2-view points (their ``n_cameras`` says so).
+    """
 
     min_cameras: int = field(default=3, metadata={
-        "help": "cameras a 3D point needs (3 as the paper; 2 is the minimum)"})
+        "help": "cameras a sample needs to enter the analyses (3 as the paper; 2 is the minimum); "
+                "points two cameras see are always in the trajectories"})
     gate_min_px: float = field(default=0.75, metadata={
         "help": "smallest epipolar and reprojection gate of a camera (px)"})
     gate_sigmas: float = field(default=6.0, metadata={

@@ -172,7 +172,9 @@ def find_rejections(averages: list[TrialAverage], names, settings: RejectionSett
     names = np.asarray(names, dtype=object)
     for avg in averages:
         peak = peak_displacement(avg, settings.smooth_s)
-        for m in np.flatnonzero(peak < settings.min_displacement_mm):
+        # a marker with no usable sample in this DU's takes has no displacement to judge: it is
+        # rejected for its gaps below
+        for m in np.flatnonzero(np.isfinite(peak) & (peak < settings.min_displacement_mm)):
             rows.append((avg.du, names[m], "small_displacement", float(peak[m]),
                          settings.min_displacement_mm))
     if averages:
