@@ -289,6 +289,7 @@ def stage_run() -> dict:
     import pandas as pd
 
     from mocap.pipeline import run_session
+    from mocap.run_outputs import WRITERS
     from mocap.simulate import preset
     from mocap.simulate.session_writer import virtual_rig_and_face
     from mocap.truth_properties import true_properties
@@ -297,7 +298,7 @@ def stage_run() -> dict:
     floor = min((read_floor(CACHE / "session") for _ in range(2)), key=lambda r: r["read_seconds"])
     with TreeMemory() as mem:
         t0, c0 = time.perf_counter(), _cpu_seconds()
-        res = run_session(CACHE / "session", out)
+        res = run_session(CACHE / "session", out, writers=WRITERS)  # as `mocap run`
         dt, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     cfg = preset("paper", seed=2018)
     _, _, face = virtual_rig_and_face(cfg)
@@ -346,13 +347,14 @@ def stage_discrepancy() -> dict:
     """``mocap discrepancy`` on the paper run's output (no hidden effect: names nothing)."""
     from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.discrepancy_io import run
+    from mocap.discrepancy_outputs import WRITERS
 
     src = HERE / "cache" / "paper_run"
     if not (src / "summary.json").exists():
         raise SystemExit("run the 'run' stage first (the discrepancy stage reads its trajectories)")
     out = HERE / "cache" / "paper_discrepancy"
     t0 = time.perf_counter()
-    res = run(src, out, DiscrepancySettings(jobs=os.cpu_count() or 1))
+    res = run(src, out, DiscrepancySettings(jobs=os.cpu_count() or 1), writers=WRITERS)
     dt = time.perf_counter() - t0
     return {"workflow_seconds": round(dt, 1), "named": res.named,
             "heldout_rms_mm": round(res.final_heldout_rms_mm, 4),

@@ -29,6 +29,7 @@ from mocap.pipeline import calibrate as _calibrate
 from mocap.pipeline import reconstruct as _reconstruct
 from mocap.pipeline import run as _run
 from mocap.reconstruct.takes import Reconstruction
+from mocap.run_outputs import WRITERS
 from mocap.run_settings import RunSettings, with_values
 from mocap.session import Session
 from mocap.session import load_session as _load_session
@@ -85,9 +86,9 @@ def run(session: Session | str | Path, out_dir: str | Path | None = None, *,
         force: bool = False, **overrides) -> RunResult:
     """The whole run: calibration, reconstruction, trials, analyses, audit.
 
-    out_dir : None (default) writes nothing anywhere; a folder receives OUTPUTS.md's files, and
-        a rerun into it reuses the results whose inputs did not change (``force=True``
-        recomputes everything).
+    out_dir : None (default) writes nothing anywhere; a folder receives every file ``mocap run``
+        writes (figures and session.rrd included), and a rerun into it reuses the results whose
+        inputs did not change (``force=True`` recomputes everything).
     overrides : settings by name, e.g. ``min_cameras=2``, ``bootstrap_samples=0``.
 
     Returns a ``RunResult``: ``.properties``, ``.linearity``, ``.rejections``, ``.audit``,
@@ -97,4 +98,5 @@ def run(session: Session | str | Path, out_dir: str | Path | None = None, *,
     s = _settings(settings, overrides, "run()")
     if out_dir is None and s.recording:
         s = with_values(s, {"recording": False})  # nothing to write it to
-    return _run(_session(session), out_dir, s, progress=progress, bars=bars, force=force)
+    return _run(_session(session), out_dir, s, progress=progress, bars=bars, force=force,
+                writers=WRITERS)

@@ -19,15 +19,17 @@ from typing import Callable
 from mocap.atomic import write_text
 
 
-def _run_one(session_dir: str, out_dir: str) -> dict:
-    """Worker side: one session, the pipeline's summary or the error (never raises)."""
+def _run_one(session_dir: str, out_dir: str, writers=None) -> dict:
+    """Worker side: one session, the pipeline's summary or the error (never raises).
+    ``writers``: the run's ``mocap.pipeline.RunWriters`` (None: data files only)."""
     import dataclasses
 
-    from mocap.pipeline import RunSettings, run_session
+    from mocap.pipeline import RunSettings, RunWriters, run_session
 
     t0 = time.perf_counter()
     try:
-        res = run_session(session_dir, out_dir, settings=dataclasses.replace(RunSettings(), jobs=1))
+        res = run_session(session_dir, out_dir, settings=dataclasses.replace(RunSettings(), jobs=1),
+                          writers=writers if writers is not None else RunWriters())
         return {"session": session_dir, "out": out_dir, "ok": True,
                 "seconds": round(time.perf_counter() - t0, 2), "stages": res.summary["stages"],
                 "audit": res.summary["audit"]["verdict"]}
@@ -49,8 +51,13 @@ def _out_names(sessions: list[Path]) -> list[str]:
 
 
 def run_batch(sessions, root, *, scheduler: str | None = None, workers: int | None = None,
-              progress: Callable[[str], None] | None = None) -> dict:
-    """Run every session; return (and write to ROOT/batch.json) the per-session outcomes."""
+              progress: Callable[[str], None] | None = None, writers=None) -> dict:
+    """Run every session; return (and write to ROOT/batch.json) the per-session outcomes.
+
+    writers : each run's figure and recording writers (``mocap.pipeline.RunWriters``; ``mocap
+        batch`` passes ``mocap.run_outputs.WRITERS``, whose module-level functions pickle by
+        reference to the workers); None: data files only.
+    """
     from dask.distributed import Client, LocalCluster, as_completed
 
     say = progress or (lambda m: None)
@@ -69,7 +76,7 @@ def run_batch(sessions, root, *, scheduler: str | None = None, workers: int | No
         client = Client(cluster)
     t0 = time.perf_counter()
     try:
-        futures = [client.submit(_run_one, str(s), str(o), pure=False)
+        futures = [client.submit(_run_one, str(s), str(o), writers, pure=False)
                    for s, o in zip(sessions, outs)]
         results = []
         for i, fut in enumerate(as_completed(futures), start=1):

@@ -1,12 +1,15 @@
 """`mocap discrepancy`: run the workflow of :mod:`mocap.analysis.discrepancy` on a session or a run's
-output and write ``discrepancy.json``, ``discrepancy.md``, ``figures/`` and ``discrepancy.rrd``.
+output and write ``discrepancy.json``, ``discrepancy.md``, ``figures/`` and ``discrepancy.rrd``
+(the last two through the writers :mod:`mocap.discrepancy_outputs` passes in).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -17,7 +20,6 @@ from mocap.analysis.discrepancy import (
     Prepared,
     prepare,
     run_discrepancy,
-    worst_marker,
 )
 from mocap.analysis.model_effects import CATALOGUE
 from mocap.atomic import write_text
@@ -158,57 +160,27 @@ def _evidence_row(e: dict) -> str:
             f"{e['explained']:.2f} | {fv} | {note} |")
 
 
-def write_figures(res: DiscrepancyResult, prep: Prepared, fig_dir: Path) -> dict:
-    from mocap.analysis import figures as F
+@dataclass(frozen=True)
+class DiscrepancyWriters:
+    """The workflow's output writers, from the outputs layer
+    (:data:`mocap.discrepancy_outputs.WRITERS`); None: not written.
 
-    out = {}
-    data = prep.data
-    floor = res.noise_floor_mm
-    takes = [t.name for t in data.takes]
-    for i, st in enumerate(res.stages):
-        grid = np.array([[st["take_phases"][t].get(ph, np.nan) for ph in PHASES] for t in takes])
-        p = fig_dir / f"discrepancy_localisation_stage{i}.png"
-        F.save(F.discrepancy_localisation(takes, list(PHASES), grid, f"stage {i}: {st['model']}"), p)
-        out[f"localisation, stage {i}"] = f"figures/{p.name}"
-    names = list(data.marker_names)
-    ratios = []
-    for st in res.stages:
-        r = np.full(len(names), np.nan)
-        for mname, v in st["markers"].items():
-            r[names.index(mname)] = v["ratio"]
-        ratios.append(r)
-    p = fig_dir / "discrepancy_markers.png"
-    F.save(F.discrepancy_marker_map(data.rest_mm, ratios, [f"stage {i}: {st['model']}"
-                                                           for i, st in enumerate(res.stages)]), p)
-    out["per marker, every stage"] = f"figures/{p.name}"
-    p = fig_dir / "discrepancy_gap.png"
-    F.save(F.discrepancy_gap([st["model"] for st in res.stages],
-                             [st["heldout_rms_mm"] for st in res.stages],
-                             {du: [st["dus"].get(du, {}).get("rms_mm", np.nan) for st in res.stages]
-                              for du in res.stages[0]["dus"]}, floor), p)
-    out["gap per step"] = f"figures/{p.name}"
-    # measured against simulated, before and after each step, on the takes where the gap was largest
-    for i in range(len(res.steps)):
-        gaps = res.stages[i]["takes"]
-        worst = sorted(gaps, key=lambda k: -(gaps[k]["rms_mm"] or 0))[:3]
-        panels = []
-        for name in worst:
-            k = takes.index(name)
-            obs = data.observed(k)
-            e0, e1 = res.heldout_residuals[i][k], res.heldout_residuals[i + 1][k]
-            m, u = worst_marker(e0, data.used)
-            tt = data.samples(k) / data.fps
-            panels.append((f"{name}, marker {data.marker_names[m]} (along its largest residual)",
-                           tt, obs[:, m] @ u, (obs[:, m] - e0[:, m]) @ u, (obs[:, m] - e1[:, m]) @ u))
-        p = fig_dir / f"discrepancy_traces_step{i + 1}_{res.steps[i].effect}.png"
-        F.save(F.discrepancy_traces(panels, res.stages[i]["model"], res.stages[i + 1]["model"]), p)
-        out[f"measured vs simulated, step {i + 1} ({res.steps[i].effect})"] = f"figures/{p.name}"
-    return out
+    figures(res, prep, fig_dir) -> {caption: "figures/<file>.png"}
+        the workflow's figures into ``fig_dir`` (linked from discrepancy.md)
+    recording(path, res, data, session_name) -> Path
+        discrepancy.rrd (``data``: ``prep.data``)
+    """
+
+    figures: Callable[[DiscrepancyResult, Prepared, Path], dict] | None = None
+    recording: Callable[..., Path] | None = None
 
 
 def run(path, out_dir, settings: DiscrepancySettings = DiscrepancySettings(),
-        progress=None, recording: bool = True) -> DiscrepancyResult:
-    """The workflow end to end on ``path`` (session or mocap run output), outputs in ``out_dir``."""
+        progress=None, recording: bool = True,
+        writers: DiscrepancyWriters = DiscrepancyWriters()) -> DiscrepancyResult:
+    """The workflow end to end on ``path`` (session or mocap run output), outputs in ``out_dir``:
+    discrepancy.json and .md, and with ``writers`` (``mocap.discrepancy_outputs.WRITERS``, as
+    ``mocap discrepancy`` passes) figures/ and (``recording``) discrepancy.rrd."""
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -219,16 +191,14 @@ def run(path, out_dir, settings: DiscrepancySettings = DiscrepancySettings(),
     prep = prepare(ms.session.fps, ms.marker_names, ms.rest_mm, ms.takes, ms.rest_X, settings)
     res = run_discrepancy(prep, settings, progress=say)
     t_fit = time.perf_counter() - t0 - t_load
-    figures = write_figures(res, prep, out / "figures")
+    figures = writers.figures(res, prep, out / "figures") if writers.figures is not None else {}
     meta = {"source": ms.source, "session": ms.session.name,
             "settings": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in settings.__dict__.items()},
             "timings_s": {"load": round(t_load, 2), "workflow": round(t_fit, 2)}}
-    if recording:
-        from mocap.recording import write_discrepancy_recording
-
+    if recording and writers.recording is not None:
         t = time.perf_counter()
-        write_discrepancy_recording(out / "discrepancy.rrd", res, prep.data, ms.session.name)
+        writers.recording(out / "discrepancy.rrd", res, prep.data, ms.session.name)
         meta["timings_s"]["recording"] = round(time.perf_counter() - t, 2)
     meta["timings_s"]["total"] = round(time.perf_counter() - t0, 2)
     write_text(out / "discrepancy.json", json.dumps(result_json(res, prep, meta), indent=2) + "\n")

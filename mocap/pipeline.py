@@ -13,6 +13,10 @@ writes nothing. With one it writes OUTPUTS.md's files atomically, holds the fold
 (:mod:`mocap.run_lock`) and keys every stage's results by what it reads
 (:mod:`mocap.run_cache`): a rerun reuses what is unchanged, recomputes the rest and says which;
 a killed run resumes from the takes it finished.
+
+The composer is a workflow: it draws no figure and writes no recording itself. The output
+writers (figures, the Rerun recording) live in the outputs layer (:mod:`mocap.run_outputs`) and
+are passed in as :class:`RunWriters`; without them a run writes its data files only.
 """
 
 from __future__ import annotations
@@ -56,8 +60,9 @@ from mocap.run_settings import RunSettings, to_dict
 from mocap.schedules import schedule_timing
 from mocap.session import Session, SessionError, command_matrix, load_session
 
-__all__ = ["RunSettings", "RunResult", "Trials", "Analysis", "calibrate", "find_markers",
-           "reconstruct", "compute_trials", "analyze_session", "analyze", "run", "run_session"]
+__all__ = ["RunSettings", "RunResult", "RunWriters", "Trials", "Analysis", "calibrate",
+           "find_markers",
+                      "reconstruct", "compute_trials", "analyze_session", "analyze", "run", "run_session"]
 
 FACE_KINDS = ("rest", "response", "motion")
 RESPONSE_COLUMNS = ["du", "frame", "time_s", "command", "marker", "x", "y", "z", "spread_mm",
@@ -78,7 +83,7 @@ def _versions() -> dict:
             "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
 
 
-def _bar(iterable, total: int, desc: str, bars: bool | None):
+def progress_bar(iterable, total: int, desc: str, bars: bool | None):
     """A tqdm progress bar on stderr: shown when ``bars`` is True, or when None and stderr is a
     terminal."""
     from tqdm import tqdm
@@ -199,6 +204,25 @@ class RunResult:
             return pd.DataFrame(columns=["take", "frame", "marker", "x", "y", "z"])
         df = pd.concat(parts, ignore_index=True)
         return df[["take"] + [c for c in df.columns if c != "take"]]
+
+
+@dataclass(frozen=True)
+class RunWriters:
+    """The run's output writers, from the outputs layer (:data:`mocap.run_outputs.WRITERS`);
+    None: not written. Each returns the files it wrote.
+
+    analysis_figures(out, session, reconstruction, trials, analysis, bars) -> list[Path]
+        the analyses' figures into ``out/figures`` (``analysis``: ``SessionAnalysis``;
+        ``bars``: as :func:`run`'s)
+    audit_figures(out, audit, reconstruction, calibration) -> list[Path]
+        the audit's figures into ``out/figures`` (``calibration`` None for 3D sessions)
+    recording(path, result) -> Path
+        the Rerun recording of the :class:`RunResult` (written when ``settings.recording``)
+    """
+
+    analysis_figures: Callable[..., list[Path]] | None = None
+    audit_figures: Callable[..., list[Path]] | None = None
+    recording: Callable[[Path, RunResult], Path] | None = None
 
 
 # --- stages ----------------------------------------------------------------------------------
@@ -328,7 +352,7 @@ def reconstruct(session: Session, calibration=None, settings: RunSettings = RunS
     say(f"{len(markers.names)} markers")
     names = [t.name for t in session.takes if t.kind in FACE_KINDS]
     done = {}
-    for tr in _bar(_map_takes(session, names, calibration, markers, settings,
+    for tr in progress_bar(_map_takes(session, names, calibration, markers, settings,
                               _recorded(session, settings)), len(names), "reconstructing takes", bars):
         done[tr.name] = tr
     return assemble(session, markers, done)
@@ -433,44 +457,27 @@ def analyze(session: Session, reconstruction: Reconstruction, settings: RunSetti
 # --- outputs ---------------------------------------------------------------------------------
 
 def write_analysis(out: Path, session: Session, recon: Reconstruction, trials: Trials, res,
-                   bars: bool | None = False) -> list[Path]:
-    """properties.csv, linearity.csv, marker_properties.csv and the figures; the files."""
-    from mocap.analysis import figures as F
-
+                   bars: bool | None = False, figures=None) -> list[Path]:
+    """properties.csv, linearity.csv, marker_properties.csv and (``figures``: a
+    :attr:`RunWriters.analysis_figures`) the figures; the files."""
     files = [write_csv(res.properties, out / "properties.csv"),
              write_csv(res.linearity, out / "linearity.csv"),
              write_csv(res.marker_properties, out / "marker_properties.csv")]
-    du_names = {d.id: d.name for d in session.dus}
-    feedback = {d.id: d.feedback for d in session.dus}
-    fig = out / "figures"
-    rest = recon.markers.rest_mm
-    props = res.properties
-    jobs = []
-    for avg in trials.averages:
-        name = du_names.get(avg.du, "")
-        jobs.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
-                     (avg.du, name, rest, res.fields_mm[avg.du], res.keep[avg.du])))
-        jobs.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
-                     (avg.du, name, res.paper[avg.du], avg.fps)))
-    jobs.append((fig / "linearity.png", F.linearity_bars,
-                 (props["du"], props["linearity_mean"], props["linearity_std"])))
-    jobs.append((fig / "property_chart.png", F.property_chart,
-                 (props["du"], props["sensitivity"], props["hysteresis"], props["dyssynchrony"],
-                  [feedback.get(d, False) for d in props["du"]])))
-    plans = {t.name: t.plan for t in session.takes}
-    for take, _, ev in res.motions:
-        jobs.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
-    for path, draw, args in _bar(jobs, len(jobs), "figures", bars):
-        files.append(F.save(draw(*args), path))
+    if figures is not None:
+        files += list(figures(out, session, recon, trials, res, bars))
     return files
 
 
-def write_audit_files(out: Path, audit: dict, recon: Reconstruction, calibration) -> list[Path]:
-    """audit.json, audit.md and the audit's figures; the files."""
-    from mocap.analysis import figures as F
+def write_audit_files(out: Path, audit: dict, recon: Reconstruction, calibration,
+                      figures=None) -> list[Path]:
+    """audit.json, audit.md and (``figures``: a :attr:`RunWriters.audit_figures`) the audit's
+    figures; the files."""
     from mocap.audit import write_audit
 
-    return write_audit(out, audit) + F.audit_figures(out, audit, recon, calibration)
+    files = write_audit(out, audit)
+    if figures is not None:
+        files += list(figures(out, audit, recon, calibration))
+    return files
 
 
 def _write_take(out: Path, store, key: str, tr: TakeReconstruction, names) -> None:
@@ -508,7 +515,8 @@ def _stored_take(out: Path, store, key: str, name: str, names) -> tuple | None:
 class _Keys:
     """Every stage's key (``mocap.run_cache``): what each stage reads."""
 
-    def __init__(self, session: Session, settings: RunSettings, fp):
+    def __init__(self, session: Session, settings: RunSettings, fp,
+                 writers: RunWriters = RunWriters()):
         from mocap.run_cache import make_key
 
         face = [t for t in session.takes if t.kind in FACE_KINDS]
@@ -541,23 +549,27 @@ class _Keys:
         motions = [(t.name, t.plan, self.takes[t.name], commands.get(t.name))
                    for t in session.takes_of_kind("motion")]
         self.analyze = make_key("analyze", trials=self.trials, motions=motions, dus=session.dus,
-                                du_ids=session.du_ids, bootstrap=settings.bootstrap_samples)
+                                du_ids=session.du_ids, bootstrap=settings.bootstrap_samples,
+                                figures=writers.analysis_figures is not None)
         self.audit = make_key("audit", trials=self.trials, calibrate=self.calibrate,
                               takes=self.takes, min_cameras=settings.reconstruction.min_cameras,
-                              session=session.name)
+                              session=session.name,
+                              figures=writers.audit_figures is not None)
         self.recording = make_key("recording", analyze=self.analyze if settings.analyze else None,
                                   audit=self.audit, commands=commands, du_ids=session.du_ids,
-                                  record_blobs=settings.record_blobs)
+                                  record_blobs=settings.record_blobs,
+                                  writer=writers.recording is not None)
 
 
 class _Composer:
     """One run's stages with their cache (``store`` None: compute all, write nothing)."""
 
     def __init__(self, session: Session, out: Path | None, settings: RunSettings, say: Say,
-                 bars: bool | None, store):
+                 bars: bool | None, store, writers: RunWriters = RunWriters()):
         self.session, self.out, self.settings = session, out, settings
-        self.say, self.bars, self.store = say, bars, store
-        self.keys = _Keys(session, settings, store.fingerprints) if store is not None else None
+        self.say, self.bars, self.store, self.writers = say, bars, store, writers
+        self.keys = (_Keys(session, settings, store.fingerprints, writers) if store is not None
+                     else None)
         self.timings: dict[str, float] = {}
         self.reused: list[str] = []
         self.computed: list[str] = []
@@ -600,7 +612,7 @@ class _Composer:
         if stored:
             self.say(f"reusing {len(stored)} of {len(face)} reconstructed takes"
                      + (f"; reconstructing {len(todo)}" if todo else ""))
-        for tr in _bar(_map_takes(session, todo, calibration, markers, settings,
+        for tr in progress_bar(_map_takes(session, todo, calibration, markers, settings,
                                   _recorded(session, settings)), len(todo),
                        "reconstructing takes", self.bars):
             if out is not None:
@@ -657,7 +669,8 @@ class _Composer:
         if trials.averages and settings.analyze:
             analysis = self.stage(
                 "analyze", lambda: analyze_session(session, recon, trials, settings),
-                lambda res: write_analysis(out, session, recon, trials, res, self.bars))
+                lambda res: write_analysis(out, session, recon, trials, res, self.bars,
+                                           self.writers.analysis_figures))
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 
@@ -667,14 +680,14 @@ class _Composer:
             "audit", lambda: audit_capture(session.name, calibration, recon, trials.averages,
                                            trials.rejections,
                                            min_cameras=settings.reconstruction.min_cameras),
-            lambda a: write_audit_files(out, a, recon, calibration))
+            lambda a: write_audit_files(out, a, recon, calibration,
+                                        self.writers.audit_figures))
         stages.append("audit")
 
         result = RunResult(session, settings, calibration, recon, trials, analysis, audit, {},
                            out, ())
-        if settings.recording and out is not None:
-            from mocap.recording import write_recording
-
+        write_recording = self.writers.recording
+        if settings.recording and out is not None and write_recording is not None:
             self.stage("recording", lambda: None,
                        lambda _: [write_recording(out / "session.rrd", result)])
             stages.append("recording")
@@ -759,7 +772,8 @@ class _Composer:
 
 def run(session: Session, out_dir: str | Path | None = None,
         settings: RunSettings = RunSettings(), *, progress: Say | None = None,
-        bars: bool | None = False, force: bool = False) -> RunResult:
+        bars: bool | None = False, force: bool = False, writers: RunWriters = RunWriters()
+        ) -> RunResult:
     """Every stage on ``session``; the results, and (with ``out_dir``) OUTPUTS.md's files.
 
     out_dir : None writes nothing at all. Otherwise the folder is locked for the run (a second
@@ -768,10 +782,12 @@ def run(session: Session, out_dir: str | Path | None = None,
         they finish, so a killed run resumes from them.
     progress : called with a line of text per step; bars : tqdm progress bars on stderr (None:
         when stderr is a terminal).
+    writers : the figures and the recording (``mocap.run_outputs.WRITERS``, as ``mocap run``
+        writes them); the default writes the data files only (no figures/, no session.rrd).
     """
     say = progress or _quiet
     if out_dir is None:
-        return _Composer(session, None, settings, say, bars, None).run()
+        return _Composer(session, None, settings, say, bars, None, writers).run()
     from mocap.run_cache import RunStore
     from mocap.run_lock import RunLock
 
@@ -781,12 +797,13 @@ def run(session: Session, out_dir: str | Path | None = None,
     with RunLock(out) as lock:
         if lock.note:
             say(lock.note)
-        return _Composer(session, out, settings, say, bars, RunStore(out, force)).run()
+        return _Composer(session, out, settings, say, bars, RunStore(out, force), writers).run()
 
 
 def run_session(session_dir: str | Path, out_dir: str | Path | None,
                 progress: Say | None = None, settings: RunSettings = RunSettings(), *,
-                bars: bool | None = False, force: bool = False) -> RunResult:
+                bars: bool | None = False, force: bool = False,
+                writers: RunWriters = RunWriters()) -> RunResult:
     """:func:`run` on the session folder ``session_dir`` (loaded and checked first)."""
     return run(load_session(session_dir), out_dir, settings, progress=progress, bars=bars,
-               force=force)
+               force=force, writers=writers)

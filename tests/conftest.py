@@ -30,19 +30,23 @@ def small_truth(small_sim) -> dict:
 
 @pytest.fixture(scope="session")
 def small_run(small_sim, tmp_path_factory):
-    """``mocap run``'s library call on the small raw session: the RunResult."""
+    """``mocap run``'s library call on the small raw session (figures and session.rrd
+    included): the RunResult."""
     from mocap.pipeline import run_session
+    from mocap.run_outputs import WRITERS
 
-    return run_session(small_sim / "session", tmp_path_factory.mktemp("small_run"))
+    return run_session(small_sim / "session", tmp_path_factory.mktemp("small_run"),
+                       writers=WRITERS)
 
 
 @pytest.fixture(scope="session")
 def sample_run(tmp_path_factory):
     """``mocap run`` on the committed sample session (what the README's main command does)."""
     from mocap.pipeline import run_session
+    from mocap.run_outputs import WRITERS
 
     root = Path(__file__).resolve().parents[1] / "sample_data" / "session"
-    return run_session(root, tmp_path_factory.mktemp("sample_run"))
+    return run_session(root, tmp_path_factory.mktemp("sample_run"), writers=WRITERS)
 
 
 TINY = dict(seed=5, du_ids=(4, 7), n_markers=20, n_trials=2, battery=False, motion_plans=("A",),

@@ -23,4 +23,6 @@ def test_batch_runs_sessions_and_reports_failures(tmp_path, capsys):
     assert "schema" in bad["error"]
     for name in ("robot_a", "robot_b"):
         assert (tmp_path / "out" / name / "properties.csv").is_file()
+        # the figure writers reach the Dask workers (passed in, pickled by reference)
+        assert (tmp_path / "out" / name / "figures" / "property_chart.png").stat().st_size > 5000
     assert "FAILED" in capsys.readouterr().out

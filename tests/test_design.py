@@ -10,6 +10,7 @@ from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
 from conftest import make_session
 from mocap.cli import main
 from mocap.pipeline import run_session
+from mocap.run_outputs import WRITERS
 
 FACE = dict(du_ids=(1, 4, 7, 11, 12), n_trials=3, n_markers=60, battery=False, motion_plans=(),
             labeled=True, seed=5)
@@ -51,7 +52,7 @@ def closed_loop(tmp_path_factory):
                          "--out", str(f)]) == 0
             files.append(f)
     make_session(root / "play", **FACE, extra_commands=tuple(files))
-    res = run_session(root / "play" / "session", root / "play_out")
+    res = run_session(root / "play" / "session", root / "play_out", writers=WRITERS)
     out = {}
     for take, plan, ev in res.analysis.motions:
         kind = "du04" if "du04" in take else "du11" if "du11" in take else "smile"

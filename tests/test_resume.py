@@ -71,8 +71,10 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
     # the library call reads the reused results back, each take when asked for
     from mocap.pipeline import RunSettings, run_session
     from mocap.reconstruct.takes import LazyTakes
+    from mocap.run_outputs import WRITERS
 
-    res = run_session(tiny_sim / "session", copy_of_run, settings=RunSettings(jobs=1, recording=False))
+    res = run_session(tiny_sim / "session", copy_of_run, settings=RunSettings(jobs=1, recording=False),
+                      writers=WRITERS)
     assert res.computed == () and isinstance(res.reconstruction.takes, LazyTakes)
     for take, X in res.arrays.items():
         ref = pd.read_parquet(tiny_run / "trajectories" / f"{take}.parquet")
@@ -82,6 +84,27 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
         np.testing.assert_array_equal(lab.interpolated.ravel(), ref["interpolated"].to_numpy())
     pd.testing.assert_frame_equal(res.properties.reset_index(drop=True),
                                   pd.read_csv(tiny_run / "properties.csv"), check_dtype=False)
+
+
+def test_a_rerun_that_adds_figures_does_not_reuse_stages_written_without(tiny_sim, copy_of_run):
+    """The writers are part of the stage keys: a data-only library run recomputes the stages
+    whose files differ (analyze, audit) and draws nothing; adding the writers back redraws."""
+    from mocap.pipeline import RunSettings, run_session
+    from mocap.run_outputs import WRITERS
+
+    settings = RunSettings(jobs=1, recording=False)
+    shutil.rmtree(copy_of_run / "figures")
+    res = run_session(tiny_sim / "session", copy_of_run, settings=settings)  # no writers
+    assert res.computed == ("analyze", "audit")
+    assert res.reused == ("calibrate", "markers", "reconstruct (6 of 6 takes)", "trials")
+    assert not (copy_of_run / "figures").exists()
+    assert (copy_of_run / "properties.csv").is_file() and (copy_of_run / "audit.json").is_file()
+    res = run_session(tiny_sim / "session", copy_of_run, settings=settings, writers=WRITERS)
+    assert res.computed == ("analyze", "audit")
+    figs = {p.name for p in (copy_of_run / "figures").glob("*.png")}
+    assert {"linearity.png", "property_chart.png", "audit_noise.png"} <= figs
+    res = run_session(tiny_sim / "session", copy_of_run, settings=settings, writers=WRITERS)
+    assert res.computed == ()
 
 
 def test_analysis_setting_change_reuses_the_reconstruction(tiny_sim, tiny_run, copy_of_run, capsys):

@@ -28,12 +28,14 @@ def run(args: argparse.Namespace) -> int:
     from mocap.paths import check_output_path
     from mocap.pipeline import RunSettings, run_session
     from mocap.run_lock import OutputInUse
+    from mocap.run_outputs import WRITERS
     from mocap.session import SessionError
 
     try:
         check_output_path(args.out, sessions=[args.session_dir])
         res = run_session(args.session_dir, args.out, settings=RunSettings(analyze=False),
-                          progress=lambda m: print(m, file=sys.stderr, flush=True))
+                          progress=lambda m: print(m, file=sys.stderr, flush=True),
+                          writers=WRITERS)
     except (SessionError, CalibrationError, OutputInUse) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

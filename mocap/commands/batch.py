@@ -29,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mocap.batch import run_batch
     from mocap.paths import OutputPathError, check_output_path
+    from mocap.run_outputs import WRITERS
 
     try:
         check_output_path(args.out, sessions=args.sessions)
@@ -36,7 +37,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     summary = run_batch(args.sessions, args.out, scheduler=args.scheduler, workers=args.workers,
-                        progress=lambda m: print(m, file=sys.stderr, flush=True))
+                        progress=lambda m: print(m, file=sys.stderr, flush=True),
+                        writers=WRITERS)
     print(f"{summary['ok']} sessions done, {summary['failed']} failed in {summary['seconds']} s; "
           f"summary in {args.out / 'batch.json'}")
     for r in summary["sessions"]:

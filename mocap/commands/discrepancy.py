@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.analysis.model_effects import CATALOGUE
     from mocap.discrepancy_io import run as run_workflow
+    from mocap.discrepancy_outputs import WRITERS
     from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_output_path(args.out, sessions=[s for s in [session_dir_of(args.path)] if s])
         res = run_workflow(args.path, args.out, settings, progress=say,
-                           recording=not args.no_recording)
+                           recording=not args.no_recording, writers=WRITERS)
     except (SessionError, ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

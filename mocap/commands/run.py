@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from mocap.paths import OutputPathError, check_output_path
     from mocap.pipeline import run_session
     from mocap.run_lock import OutputInUse
+    from mocap.run_outputs import WRITERS
     from mocap.run_settings import describe
     from mocap.session import SessionError
 
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_path(args.out, sessions=[args.session_dir])
         result = run_session(args.session_dir, args.out, progress=None if args.quiet else say,
                              settings=settings, bars=False if args.quiet else None,
-                             force=args.force)
+                             force=args.force, writers=WRITERS)
     except (SessionError, CalibrationError, OutputInUse, OutputPathError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

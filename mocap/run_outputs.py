@@ -1,0 +1,74 @@
+"""The run's figures and Rerun recording (outputs layer): the writers ``mocap run`` passes to
+the composer (:class:`mocap.pipeline.RunWriters`).
+
+The composer (a workflow) computes and writes data files; drawing (matplotlib, in
+:mod:`mocap.analysis.figures`) and recording (rerun, in :mod:`mocap.recording`) sit above it
+and are handed down as plain functions, so the workflow never imports them::
+
+    from mocap.pipeline import run_session
+    from mocap.run_outputs import WRITERS
+
+    run_session("sample_data/session", "out/sample", writers=WRITERS)   # as `mocap run`
+
+Module-level functions, so :data:`WRITERS` pickles by reference (``mocap batch`` sends it to
+Dask workers).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mocap.pipeline import RunWriters, Trials, progress_bar
+from mocap.reconstruct.takes import Reconstruction
+from mocap.session import Session
+
+__all__ = ["analysis_figures", "audit_figures", "write_recording", "WRITERS"]
+
+
+def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials: Trials, res,
+                     bars: bool | None = False) -> list[Path]:
+    """The analyses' figures into ``out/figures`` (docs/outputs.md): per DU its displacement
+    field and response curves, the linearity bars, the property chart and one figure per
+    evaluated motion take. ``res``: the run's ``SessionAnalysis``. Returns the files."""
+    from mocap.analysis import figures as F
+
+    du_names = {d.id: d.name for d in session.dus}
+    feedback = {d.id: d.feedback for d in session.dus}
+    fig = out / "figures"
+    rest = recon.markers.rest_mm
+    props = res.properties
+    jobs = []
+    for avg in trials.averages:
+        name = du_names.get(avg.du, "")
+        jobs.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
+                     (avg.du, name, rest, res.fields_mm[avg.du], res.keep[avg.du])))
+        jobs.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
+                     (avg.du, name, res.paper[avg.du], avg.fps)))
+    jobs.append((fig / "linearity.png", F.linearity_bars,
+                 (props["du"], props["linearity_mean"], props["linearity_std"])))
+    jobs.append((fig / "property_chart.png", F.property_chart,
+                 (props["du"], props["sensitivity"], props["hysteresis"], props["dyssynchrony"],
+                  [feedback.get(d, False) for d in props["du"]])))
+    plans = {t.name: t.plan for t in session.takes}
+    for take, _, ev in res.motions:
+        jobs.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
+    return [F.save(draw(*args), path)
+            for path, draw, args in progress_bar(jobs, len(jobs), "figures", bars)]
+
+
+def audit_figures(out: Path, audit: dict, recon: Reconstruction, calibration) -> list[Path]:
+    """The audit's figures into ``out/figures`` (``mocap.analysis.figures.audit_figures``)."""
+    from mocap.analysis import figures as F
+
+    return F.audit_figures(out, audit, recon, calibration)
+
+
+def write_recording(path: Path, result) -> Path:
+    """The run's Rerun recording (``mocap.recording.write_recording``) of a ``RunResult``."""
+    from mocap.recording import write_recording as write
+
+    return write(path, result)
+
+
+WRITERS = RunWriters(analysis_figures=analysis_figures, audit_figures=audit_figures,
+                     recording=write_recording)
