@@ -36,6 +36,9 @@ from mocap.schedules import sample_commands
 
 OVERSAMPLE = 4
 R_MAX = 48.0  # largest play width r, command units (the table holds half-widths up to 2 r)
+# the PI density's grid: play half-widths / r; the paper-model's equal plays sit on every second
+DENSITY_FRACTIONS = np.round(np.arange(0.0, 2.0001, 0.25), 6)  # (F,)
+EQUAL_DENSITY = np.where(np.isin(DENSITY_FRACTIONS, PLAY_FRACTIONS), 1.0 / PLAY_FRACTIONS.size, 0.0)
 
 
 def actuator_effects(effects) -> list[Effect]:
@@ -95,6 +98,16 @@ class FaceModel:
     B: np.ndarray
     effects: tuple[Effect, ...] = ()
     info: dict = field(default_factory=dict)
+    density: np.ndarray | None = None
+    take_shifts: dict = field(default_factory=dict)  # take name -> {DU id: bias shift}
+    pairs: tuple[tuple[int, int], ...] = ()
+    C: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.density is None:
+            self.density = np.tile(EQUAL_DENSITY, (len(self.du_ids), 1))
+        if self.C is None:
+            self.C = np.zeros((len(self.pairs), len(self.marker_names), 3))
 
     @property
     def effect_names(self) -> list[str]:
@@ -117,12 +130,26 @@ class FaceModel:
     def bias_shift(self, trial) -> np.ndarray | float:
         return sum((e.beta_shift(trial) for e in self.effects), 0.0)
 
-    def response(self, tables: list[np.ndarray], dus, trial) -> np.ndarray:
-        """Normalised responses y (S, n_take_dus, M) from the take's play tables."""
+    @property
+    def shifts_takes(self) -> bool:
+        """Whether the model holds a bias shift per take and DU (the ``takeshift`` base effect)."""
+        return self.effect("takeshift") is not None
+
+    def loop_width(self) -> np.ndarray:
+        """Full-sweep loop width (N, M) of each curve, command units: 2 r x the density's mean
+        fraction (the forward branch runs at c - r sum_f q_f f, the backward one at c + ...)."""
+        return 2.0 * self.r * (self.density @ DENSITY_FRACTIONS)[:, None]
+
+    def response(self, tables: list[np.ndarray], dus, trial, take_shift=None) -> np.ndarray:
+        """Normalised responses y (S, n_take_dus, M) from the take's play tables.
+
+        take_shift : (n_take_dus,) the take's own bias shift per DU, command units (None: 0).
+        """
         S = tables[0].shape[0] if tables else 0
         y = np.zeros((S, len(dus), len(self.marker_names)))
-        shift = np.broadcast_to(np.asarray(self.bias_shift(trial), float), (S,))
+        base = np.broadcast_to(np.asarray(self.bias_shift(trial), float), (S,))
         for j, du in enumerate(dus):
+            shift = base if take_shift is None else base + float(take_shift[j])
             if du not in self.du_ids:
                 continue
             n = self.du_ids.index(du)
@@ -130,7 +157,8 @@ class FaceModel:
             if act.size == 0:
                 continue
             y[:, j, act] = pi_logistic_from_table(tables[j], self.r[n, act], self.alpha[n, act],
-                                                  self.beta[n, act], shift, PLAY_FRACTIONS)
+                                                  self.beta[n, act], shift, DENSITY_FRACTIONS,
+                                                  weights=self.density[n])
         return y
 
     def displacement_from_response(self, y: np.ndarray, dus) -> np.ndarray:
@@ -147,6 +175,8 @@ class FaceModel:
         for e in self.effects:
             y_eff = e.interact(y_eff, D)
         d = np.einsum("snm,nmk->smk", y_eff, D)
+        if self.pairs:
+            d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C)
         k = 0
         for e in self.effects:
             for basis in e.bases(y):
@@ -156,8 +186,8 @@ class FaceModel:
             d = e.output(d)
         return d
 
-    def predict_tables(self, tables, dus, trial) -> np.ndarray:
-        return self.displacement_from_response(self.response(tables, dus, trial), dus)
+    def predict_tables(self, tables, dus, trial, take_shift=None) -> np.ndarray:
+        return self.displacement_from_response(self.response(tables, dus, trial, take_shift), dus)
 
     def predict(self, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
         """Marker positions (n_frames, M, 3) mm for a command schedule (FORMAT.md rows).
@@ -177,12 +207,50 @@ class FaceModel:
         for e in self.effects:
             cls = type(e)
             if cls.name == "hysteresis":
-                out[cls.parameter] = float(np.median(2.0 * self.r[self.active]))
+                out[cls.parameter] = float(np.median(self.loop_width()[self.active]))
+            elif cls.name == "coupling" and cls.per_curve:
+                out[cls.parameter] = pair_kappa(self)
             elif cls.name == "curvature":
                 out[cls.parameter] = bow_ratio(self)
             else:
                 out[cls.parameter] = float(e.describe()["value"])
         return out
+
+
+def pair_features(y: np.ndarray, dus, pairs) -> tuple[list[int], np.ndarray]:
+    """The pairwise interaction features y_n y_n' (S, P_take, M) of a take's DUs ``dus`` for the
+    model's ``pairs`` present in the take, and their indices into ``pairs``."""
+    pos = {d: i for i, d in enumerate(dus)}
+    idx = [k for k, (a, b) in enumerate(pairs) if a in pos and b in pos]
+    if not idx:
+        return [], np.zeros((y.shape[0], 0, y.shape[2]))
+    F = np.stack([y[:, pos[pairs[k][0]]] * y[:, pos[pairs[k][1]]] for k in idx], axis=1)
+    return idx, F
+
+
+def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray) -> np.ndarray:
+    """Sum over the take's DU pairs of y_n y_n' C_pair,m (S, M, 3) mm; y (S, n_dus, M)."""
+    idx, F = pair_features(y, dus, pairs)
+    if not idx:
+        return np.zeros((y.shape[0], y.shape[2], 3))
+    return np.einsum("spm,pmk->smk", F, C[idx])
+
+
+def pair_kappa(model: FaceModel) -> float:
+    """The coupling law's kappa that best matches the fitted pair vectors: least squares of
+    C_pair,m = -kappa (o_n'm D_nm + o_nm D_n'm) over pairs and markers, o the DU's relative pull
+    (|D_nm| / max_m |D_nm|), so that the model's own law reads back its kappa."""
+    if not model.pairs or model.C is None:
+        return 0.0
+    mag = np.linalg.norm(model.D, axis=-1)
+    o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+    num = den = 0.0
+    for k, (a, b) in enumerate(model.pairs):
+        i, j = model.du_ids.index(a), model.du_ids.index(b)
+        g = -(o[j][:, None] * model.D[i] + o[i][:, None] * model.D[j])  # (M, 3)
+        num += float(np.sum(g * model.C[k]))
+        den += float(np.sum(g * g))
+    return num / den if den > 0 else 0.0
 
 
 def bow_ratio(model: FaceModel) -> float:
