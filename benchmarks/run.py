@@ -174,7 +174,8 @@ def stage_run() -> dict:
 
     from mocap.pipeline import run_session
     from mocap.simulate import preset
-    from mocap.simulate.session_writer import true_properties, virtual_rig_and_face
+    from mocap.simulate.session_writer import virtual_rig_and_face
+    from mocap.truth_properties import true_properties
 
     out = HERE / "cache" / "paper_run"
     t0 = time.perf_counter()

@@ -275,7 +275,8 @@ def test_properties_file(small_run):
 
 def test_properties_match_truth(small_sim, small_run):
     from mocap.simulate import preset
-    from mocap.simulate.session_writer import true_properties, virtual_rig_and_face
+    from mocap.simulate.session_writer import virtual_rig_and_face
+    from mocap.truth_properties import true_properties
 
     cfg = preset("small", seed=11, battery=False)
     _, _, face = virtual_rig_and_face(cfg)

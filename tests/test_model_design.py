@@ -29,7 +29,7 @@ from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
 from mocap.cli import main
 from mocap.design_io import identify_model, play_virtual, virtual_face_of
-from mocap.simulate.session_writer import true_properties
+from mocap.truth_properties import true_properties
 
 DUS = (1, 7, 12)
 FACE = dict(du_ids=DUS, n_markers=40, n_trials=2, labeled=True, motion_plans=(), seed=3)

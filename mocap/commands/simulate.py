@@ -17,6 +17,9 @@ examples:
   mocap simulate out/small --preset small --seed 1
   mocap simulate out/lag --preset small --effect lag --strength 0.1
   mocap simulate out/two --preset small --effect lag,drift       # two hidden effects at once
+  mocap simulate out/pb --preset small --face-family preisach-bow --labeled --labeled-noise-mm 0.03
+  mocap simulate out/any --preset small --face-family random     # the family goes to truth/ only
+  mocap simulate out/alt --preset small --effect coupling --effect-form alt
   mocap simulate out/paper --preset paper            # the full study, Parquet takes
   mocap simulate out/designed --preset small --commands commands.csv
 """
@@ -24,6 +27,7 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from mocap.simulate.effects import EFFECTS
+    from mocap.simulate.families import FAMILY_NAMES
 
     p.add_argument("out_dir", type=Path, help="output folder (session/ and truth/ are written in it)")
     p.add_argument("--preset", default="small", choices=["small", "sample", "paper"],
@@ -35,7 +39,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strength", default=None,
                    help="the effect's parameter, one per effect, comma-separated (default: each "
                         "effect's default strength)")
+    p.add_argument("--face-family", default=None, choices=FAMILY_NAMES, metavar="NAME",
+                   help="the base face's family: hysteresis-path among "
+                        f"{', '.join(FAMILY_NAMES[1:-1])}; pi (default: the face of earlier "
+                        "versions); random (drawn from the seed, named in truth/ only)")
+    p.add_argument("--effect-form", choices=["model", "alt"], default="model",
+                   help="the hidden effects' equations: model (default) or alt, a second form "
+                        "with the same parameters that the analysis model does not share")
     p.add_argument("--labeled", action="store_true", help="write labeled 3D takes (no cameras)")
+    p.add_argument("--labeled-noise-mm", type=float, default=None,
+                   help="measurement noise sd per axis of labeled takes, mm (default 0.02)")
     p.add_argument("--format", choices=["csv", "parquet"], default=None, help="take file format")
     p.add_argument("--trials", type=int, default=None, help="response trials per DU")
     p.add_argument("--markers", type=int, default=None, help="number of face markers")
@@ -66,8 +79,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         overrides = dict(
             seed=args.seed,
-            effect=make_effect(args.effect, args.strength),
+            effect=make_effect(args.effect, args.strength, args.effect_form),
             labeled=args.labeled or None,
+            labeled_noise_mm=args.labeled_noise_mm,
+            face_family=args.face_family,
             take_format=args.format,
             n_trials=args.trials,
             n_markers=args.markers,
@@ -80,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
         if args.noise_px is not None:
             cfg = dataclasses.replace(cfg, noise=dataclasses.replace(CaptureNoise(), noise_px=args.noise_px))
         summary = simulate(cfg, out, progress=print_progress)
+        from mocap.truth_properties import write_true_properties
+
+        write_true_properties(cfg, out)
     except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -9,6 +9,7 @@ from pathlib import Path
 from mocap.simulate.capture import CaptureNoise
 from mocap.simulate.dus import DU_TABLE
 from mocap.simulate.effects import HiddenEffect
+from mocap.simulate.families import FAMILY_NAMES
 
 PLANS = ("A", "B", "C", "D", "E")
 
@@ -22,6 +23,9 @@ class SimConfig:
     du_ids : the face's DUs.  n_markers : markers on the half-face.  n_trials : response trials.
     noise : detection imperfections of every camera.
     degrade_camera / degraded : one camera with worse detections (audit tests).
+    face_family : the base face's family (``mocap.simulate.families``): ``pi`` (default, the
+        face of earlier versions), one of ``FAMILIES`` (``HYSTERESIS-PATH``) or ``random`` (one
+        of ``FAMILIES`` drawn from ``seed``, recorded in the truth only).
     effect : the hidden effect applied to the true face.
     labeled : write labeled 3D takes (no cameras) instead of 2D blobs.
     take_format : "csv" or "parquet" for the take files.
@@ -45,6 +49,7 @@ class SimConfig:
     noise: CaptureNoise = CaptureNoise()
     degrade_camera: str | None = None
     degraded: CaptureNoise = CaptureNoise(noise_px=0.5, dropout=0.3, ghost_rate=0.2)
+    face_family: str = "pi"
     effect: HiddenEffect = HiddenEffect()
     labeled: bool = False
     labeled_noise_mm: float = 0.02
@@ -75,6 +80,11 @@ class SimConfig:
             raise ValueError(f"simulate: expected fps > 0, got {self.fps}")
         if self.n_cameras < 2:
             raise ValueError(f"simulate: expected at least 2 cameras, got {self.n_cameras}")
+        if self.face_family not in FAMILY_NAMES:
+            raise ValueError(f"simulate: expected a face family among {', '.join(FAMILY_NAMES)}, "
+                             f"got {self.face_family!r}")
+        if not (self.labeled_noise_mm >= 0):
+            raise ValueError(f"simulate: expected labeled_noise_mm >= 0, got {self.labeled_noise_mm}")
         if self.wand_duration_s <= self.wand_gap_s:
             raise ValueError("simulate: the wand gap must be shorter than the wand take")
 

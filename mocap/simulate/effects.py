@@ -23,6 +23,11 @@ The true response of a take is computed in three stages (``mocap.simulate.motion
    - ``curvature`` kappa:  d_m = sum_n (y_n D_nm + 4 kappa y_n (1 - y_n) |D_nm| b_nm), b_nm the
                            unit tangent perpendicular to D_nm (paths bow sideways by kappa |D|
                            at mid-range)
+
+With a face family whose paths are not straight, ``sum_n y_n D_nm`` reads ``sum_n p_nm(y_n)``,
+the family's path (``families``). ``form="alt"`` (``--effect-form alt``) replaces each equation
+by a second form the analysis model does not share, with the same parameter and unit
+(``effects_alt``).
 """
 
 from __future__ import annotations
@@ -31,7 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.analysis.hysteresis import play
+from mocap.simulate import effects_alt as alt
+from mocap.simulate.hysteresis_ops import play
 
 EFFECTS: dict[str, tuple[str, float, str]] = {
     # name: (parameter, default strength, unit)
@@ -57,24 +63,51 @@ MEANINGS = {
 }
 
 
+FORMS = ("model", "alt")
+
+ALT_TRUTH = {
+    "none": "",
+    "lag": "critically damped second order (tau/2 d/dt + 1)^2 a = c; tau is the mean delay "
+           "(the first-order tau with the same mean delay)",
+    "deadtime": "distributed delay: a(t) = mean of c over [t - 1.25 L, t - 0.75 L]; L is the mean delay",
+    "backlash": "stick-slip dead band: after a reversal the actuator holds until the command has "
+                "come back 2 b, then jumps to the command; b is half the dead band",
+    "coupling": "y_n (1 - kappa sum_{n' != n} y_n') at every marker; kappa is the fraction a DU's "
+                "response loses while another is at full command",
+    "drift": "per-marker bias drift k (1 + xi_m / 2) (trial - 1), xi_m = sqrt(2) sin(2.39996 m); "
+             "k is the mean over markers",
+    "saturation": "per DU before summation: d_n / sqrt(1 + (|d_n| / L)^2); L is one DU's "
+                  "asymptotic largest displacement",
+    "curvature": "skewed bow 27/4 kappa y (1 - y)^2 |D| sideways; kappa is the largest sideways "
+                 "deviation over |D|",
+}
+
+
 @dataclass(frozen=True)
 class HiddenEffect:
-    """A hidden effect and its strength (see the module docstring for equations)."""
+    """A hidden effect and its strength (see the module docstring for equations).
+
+    form : "model" (the equations above) or "alt" (``effects_alt``: the same parameter, a form
+    the analysis model does not share).
+    """
 
     name: str = "none"
     strength: float = 0.0
+    form: str = "model"
 
     def __post_init__(self) -> None:
         if self.name not in EFFECTS:
             raise ValueError(f"hidden effect: expected one of {sorted(EFFECTS)}, got {self.name!r}")
         if self.strength < 0 or not np.isfinite(self.strength):
             raise ValueError(f"hidden effect {self.name}: expected strength >= 0, got {self.strength}")
+        if self.form not in FORMS:
+            raise ValueError(f"hidden effect {self.name}: expected form among {FORMS}, got {self.form!r}")
 
     @classmethod
-    def default(cls, name: str, strength: float | None = None) -> "HiddenEffect":
+    def default(cls, name: str, strength: float | None = None, form: str = "model") -> "HiddenEffect":
         if name not in EFFECTS:
             raise ValueError(f"hidden effect: expected one of {sorted(EFFECTS)}, got {name!r}")
-        return cls(name, EFFECTS[name][1] if strength is None else float(strength))
+        return cls(name, EFFECTS[name][1] if strength is None else float(strength), form)
 
     @property
     def parameter(self) -> str:
@@ -87,6 +120,8 @@ class HiddenEffect:
             "parameters": {self.parameter: self.strength} if self.name != "none" else {},
             "unit": EFFECTS[self.name][2],
             "meaning": MEANINGS[self.name],
+            "form": self.form,
+            **({"alt_equation": ALT_TRUTH[self.name]} if self.form == "alt" else {}),
         }
 
     # -- stage 1: command side -------------------------------------------------------------
@@ -96,6 +131,14 @@ class HiddenEffect:
         ``sampler(times) -> (n_samples, n_dus)`` evaluates the command schedule at any times
         (used by dead time to shift exactly).
         """
+        if self.form == "alt":
+            if self.name == "deadtime" and self.strength > 0:
+                return alt.distributed_delay(t, sampler, self.strength)
+            if self.name == "lag" and self.strength > 0:
+                return alt.lag_second_order(c, t, self.strength)
+            if self.name == "backlash":
+                return alt.stick_slip(c, self.strength)
+            return c
         if self.name == "deadtime":
             return sampler(t - self.strength)
         if self.name == "lag" and self.strength > 0:
@@ -110,45 +153,69 @@ class HiddenEffect:
         return c
 
     # -- stage 2: static map -----------------------------------------------------------------
-    def beta_shift(self, trial: int) -> float:
+    def beta_shift(self, trial: int, n_markers: int | None = None):
+        """The static map's bias shift in ``trial``, command units: a float, or (n_markers,)
+        for the alt drift (which then needs ``n_markers``)."""
         if self.name == "drift":
-            return self.strength * (max(int(trial), 1) - 1)
+            k = self.strength * (max(int(trial), 1) - 1)
+            if self.form == "alt":
+                if n_markers is None:
+                    raise ValueError("hidden effect drift (alt form): the bias shift needs n_markers")
+                return k * alt.marker_drift_weights(n_markers)
+            return k
         return 0.0
 
     # -- stage 3: displacement -------------------------------------------------------------
-    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                     paths=None) -> np.ndarray:
         """Marker displacements (n_samples, n_markers, 3) mm.
 
         y : (n_samples, n_dus, n_markers) normalised responses of the take's DUs.
         D : (n_dus, n_markers, 3) their peak vectors, mm.
         normals : (n_markers, 3) skin normals (for the sideways direction of ``curvature``).
+        paths : None for straight paths (d = y D per DU), else ``paths(y) -> (n_samples, n_dus,
+            n_markers, 3)`` the face family's per-DU displacements.
         """
-        return compose_displacement((self,), y, D, normals)
+        return compose_displacement((self,), y, D, normals, paths)
 
 
-def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                         paths=None) -> np.ndarray:
     """Stage 3 of any set of effects: coupling scales y, curvature adds a bow, saturation caps.
 
     Shapes as :meth:`HiddenEffect.displacement`. Effects absent from ``effects`` are identity.
     """
     by_name = {e.name: e.strength for e in effects}
+    alt_forms = {e.name for e in effects if e.form == "alt"}
     if "coupling" in by_name and y.shape[1] > 1:
-        mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
-        o = mag / mag.max(axis=1, keepdims=True)
-        yo = y * o[None]  # (S, N, M)
-        others = yo.sum(axis=1, keepdims=True) - yo
-        y_eff = y * (1.0 - by_name["coupling"] * others)
+        if "coupling" in alt_forms:
+            y_eff = alt.coupled_drives(y, by_name["coupling"])
+        else:
+            mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
+            o = mag / mag.max(axis=1, keepdims=True)
+            yo = y * o[None]  # (S, N, M)
+            others = yo.sum(axis=1, keepdims=True) - yo
+            y_eff = y * (1.0 - by_name["coupling"] * others)
     else:
         y_eff = y
-    d = np.einsum("snm,nmk->smk", y_eff, D)
+    if "saturation" in alt_forms and by_name["saturation"] > 0:
+        per_du = y_eff[..., None] * D if paths is None else paths(y_eff)
+        d = alt.compress_per_du(per_du, by_name["saturation"]).sum(axis=1)
+    elif paths is None:
+        d = np.einsum("snm,nmk->smk", y_eff, D)
+    else:
+        d = paths(y_eff).sum(axis=1)
     if "curvature" in by_name:
         side = np.cross(normals[None], D)  # (N, M, 3) perpendicular, tangent
         norm = np.linalg.norm(side, axis=-1, keepdims=True)
         side = np.where(norm > 0, side / np.where(norm > 0, norm, 1.0), 0.0)
         mag = np.linalg.norm(D, axis=-1, keepdims=True)
-        bow = 4.0 * by_name["curvature"] * y * (1.0 - y)
+        if "curvature" in alt_forms:
+            bow = alt.skewed_bow(y, by_name["curvature"])
+        else:
+            bow = 4.0 * by_name["curvature"] * y * (1.0 - y)
         d = d + np.einsum("snm,nmk->smk", bow, side * mag)
-    if "saturation" in by_name and by_name["saturation"] > 0:
+    if "saturation" in by_name and by_name["saturation"] > 0 and "saturation" not in alt_forms:
         L = by_name["saturation"]
         mag = np.linalg.norm(d, axis=-1, keepdims=True)
         scale = np.where(mag > 1e-12, L * np.tanh(mag / L) / np.where(mag > 1e-12, mag, 1.0), 1.0)
@@ -193,24 +260,25 @@ class CombinedEffect:
             for e in self.effects:
                 if e.name != name:
                     continue
-                if name == "deadtime":
-                    out = sampler(t - e.strength)
-                else:
-                    out = e.command(out, t, sampler)
+                # dead time reads the schedule itself (hence first in COMMAND_ORDER)
+                out = e.command(out, t, sampler)
         return out
 
-    def beta_shift(self, trial: int) -> float:
-        return float(sum(e.beta_shift(trial) for e in self.effects))
+    def beta_shift(self, trial: int, n_markers: int | None = None):
+        total = sum(e.beta_shift(trial, n_markers) for e in self.effects)
+        return total if np.ndim(total) else float(total)
 
-    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        return compose_displacement(self.effects, y, D, normals)
+    def displacement(self, y: np.ndarray, D: np.ndarray, normals: np.ndarray,
+                     paths=None) -> np.ndarray:
+        return compose_displacement(self.effects, y, D, normals, paths)
 
 
-def make_effect(names, strengths=None):
+def make_effect(names, strengths=None, form: str = "model"):
     """One :class:`HiddenEffect` or a :class:`CombinedEffect` from names and optional strengths.
 
     ``names`` : str ("lag", "lag,drift") or sequence; ``strengths`` : None, a number, a string
-    "0.08,4" or a sequence, one per name (None entries take the default).
+    "0.08,4" or a sequence, one per name (None entries take the default); ``form`` : "model" or
+    "alt" for every effect (see ``effects_alt``).
     """
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
@@ -225,7 +293,7 @@ def make_effect(names, strengths=None):
     if len(strengths) != len(names):
         raise ValueError(f"hidden effects: {len(names)} names ({','.join(names)}) but "
                          f"{len(strengths)} strengths")
-    effects = [HiddenEffect.default(n, s) for n, s in zip(names, strengths)]
+    effects = [HiddenEffect.default(n, s, form) for n, s in zip(names, strengths)]
     if len(effects) == 1:
         return effects[0]
     return CombinedEffect(tuple(effects))

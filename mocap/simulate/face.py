@@ -30,14 +30,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mocap.analysis.hysteresis import play
+from mocap.simulate import hysteresis_ops as ops
 from mocap.simulate.dus import DU_BY_ID
+from mocap.simulate.families import (
+    BOUC_WEN_B,
+    BOUC_WEN_G,
+    PI_FAMILY,
+    PLAY_FRACTIONS,
+    PREISACH_CENTRE_SLOPE,
+    PREISACH_ETA,
+    FaceFamily,
+    FamilyTraits,
+    draw_traits,
+    path_displacement,
+)
 
 FACE_CENTER = np.array([35.0, 145.0, 0.0])  # mm, world
 HALF_WIDTH_MM = 70.0
 HALF_HEIGHT_MM = 65.0
 NOSE_BRIDGE_FACE_XY = (3.0, 22.0)  # face-plane mm
-PLAY_FRACTIONS = np.array([0.0, 0.5, 1.0, 1.5, 2.0])  # play half-widths / r (mean 1)
 TRIAL_AMPLITUDE_SD = 0.003
 TRIAL_BETA_SD = 0.4
 SKIN_JITTER_MM = 0.008
@@ -116,6 +127,8 @@ class VirtualFace:
     alpha : (n_dus, n_markers) logistic sensitivity, 1/command unit.
     beta : (n_dus, n_markers) logistic bias of the hysteresis output, command units.
     r_half : (n_dus, n_markers) mean play half-width r (loop width 2 r), command units.
+    family : the base-face family (``mocap.simulate.families``); ``traits`` its per-face arrays
+        (None for ``pi``).
     """
 
     marker_names: tuple[str, ...]
@@ -128,6 +141,8 @@ class VirtualFace:
     beta: np.ndarray
     r_half: np.ndarray
     meta: dict = field(default_factory=dict)
+    family: FaceFamily = PI_FAMILY
+    traits: FamilyTraits | None = None
 
     @property
     def n_markers(self) -> int:
@@ -142,21 +157,56 @@ class VirtualFace:
         ``du_rows`` are the DU indices (into ``du_ids``) of c's columns.
         """
         thr = self.r_half[du_rows][..., None] * PLAY_FRACTIONS  # (n_sel, n_markers, n_plays)
-        x = np.broadcast_to(c[:, :, None, None], c.shape + thr.shape[1:])
-        return play(x, thr, 0.0).mean(axis=-1)
+        return ops.pi_mean(c, thr)
 
     def static_map(self, w: np.ndarray, du_rows: np.ndarray, beta_shift=0.0) -> np.ndarray:
         """Normalised response y = (S(w) - S(0)) / (S(255) - S(0)), same shape as ``w``."""
-        a = self.alpha[du_rows]
-        b = self.beta[du_rows] + beta_shift
-        lo = 1.0 / (1.0 + np.exp(a * b))
-        hi = 1.0 / (1.0 + np.exp(-a * (255.0 - b)))
-        s = 1.0 / (1.0 + np.exp(np.clip(-a * (w - b), -700, 700)))
-        return (s - lo) / (hi - lo)
+        return ops.logistic01(w, self.alpha[du_rows], self.beta[du_rows] + beta_shift)
+
+    def response(self, a: np.ndarray, du_rows: np.ndarray, beta_shift=0.0, step: int = 1) -> np.ndarray:
+        """The family's normalised response y (n_out, n_sel, n_markers) to actuator inputs a
+        (n_samples, n_sel) command units, every ``step``-th sample (n_out = ceil(n_samples / step)).
+
+        ``beta_shift`` : scalar or (n_sel, 1) bias shift (trial shift, drift), command units.
+        """
+        hyst = self.family.hysteresis
+        if hyst == "pi":
+            return self.static_map(self.hysteresis_state(a, du_rows)[::step], du_rows, beta_shift)
+        alpha = self.alpha[du_rows]
+        beta = self.beta[du_rows] + beta_shift
+        r = self.r_half[du_rows]
+        x = np.broadcast_to(np.asarray(a, float)[:, :, None], a.shape + (self.n_markers,))
+        if hyst == "branchplay":
+            ab = self.traits.alpha_bwd[du_rows]
+            return ops.branch_play(x, lambda v: ops.logistic01(v, alpha, beta + r),
+                                   lambda v: ops.logistic01(v, ab, beta - r))[::step]
+        if hyst == "preisach":
+            h = r[..., None] * (1.0 + 0.5 * PREISACH_ETA)
+            w = np.exp(-0.5 * PREISACH_ETA**2)
+            mu = beta[..., None] + PREISACH_CENTRE_SLOPE * (h - r[..., None])
+            spread = np.pi / np.sqrt(3.0) / alpha
+            return ops.preisach_gaussian(a, h, w / w.sum(), mu, spread, step=step)
+        if hyst == "boucwen":
+            z = ops.bouc_wen_state(x, BOUC_WEN_B / r, BOUC_WEN_G / r)[::step]
+            return ops.logistic01(x[::step] - z, alpha, beta)
+        raise ValueError(f"virtual face: unknown hysteresis {hyst!r}")
+
+    def displacement(self, y: np.ndarray, D: np.ndarray, du_rows: np.ndarray) -> np.ndarray:
+        """Per-DU displacements (n_samples, n_sel, n_markers, 3) mm along the family's paths.
+
+        y : (n_samples, n_sel, n_markers); D : (n_sel, n_markers, 3) this take's peak vectors.
+        """
+        vec = self.traits.path_vec[du_rows] if self.traits is not None else np.zeros_like(D)
+        return path_displacement(self.family.path, y, D, vec)
 
 
-def make_face(rng: np.random.Generator, n_markers: int, du_ids) -> VirtualFace:
-    """Draw a virtual face: layout, DU fields and per-marker response parameters."""
+def make_face(rng: np.random.Generator, n_markers: int, du_ids, family: FaceFamily = PI_FAMILY,
+              family_rng: np.random.Generator | None = None) -> VirtualFace:
+    """Draw a virtual face: layout, DU fields and per-marker response parameters.
+
+    The base face comes from ``rng`` alone, whatever the family; a family other than ``pi`` then
+    adds its per-marker scatter and traits from ``family_rng`` (required for those families).
+    """
     xy, nose_bridge = marker_layout(n_markers)
     z = surface_height(xy[:, 0], xy[:, 1])
     normals = surface_normals(xy[:, 0], xy[:, 1])
@@ -183,6 +233,15 @@ def make_face(rng: np.random.Generator, n_markers: int, du_ids) -> VirtualFace:
         beta[i] = spec.beta + rng.normal(0.0, spec.spread_beta, n_markers)
         r_half[i] = 0.5 * spec.hysteresis * np.exp(rng.normal(0.0, 0.05, n_markers))
     names = tuple(f"M{k + 1:03d}" for k in range(n_markers))
+    traits = None
+    if family.hysteresis != "pi" or family.path != "straight" or family.varies:
+        if family_rng is None:
+            raise ValueError(f"virtual face: family {family.name!r} needs its own random stream")
+        alpha = alpha * np.exp(family_rng.normal(0.0, family.alpha_scatter, alpha.shape))
+        beta = beta + family_rng.normal(0.0, family.beta_scatter, beta.shape)
+        r_half = r_half * np.exp(family_rng.normal(0.0, family.width_scatter, r_half.shape))
+        D = D * np.exp(family_rng.normal(0.0, family.amp_scatter, alpha.shape))[..., None]
+        traits = draw_traits(family_rng, family, D, normals, alpha)
     return VirtualFace(
         marker_names=names,
         rest_mm=rest,
@@ -193,4 +252,6 @@ def make_face(rng: np.random.Generator, n_markers: int, du_ids) -> VirtualFace:
         alpha=alpha,
         beta=beta,
         r_half=r_half,
+        family=family,
+        traits=traits,
     )

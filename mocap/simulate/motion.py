@@ -1,6 +1,8 @@
-"""True 3D marker positions of a take on the virtual face (see ``face`` and ``effects``)."""
+"""True 3D marker positions of a take on the virtual face (see ``face``, ``families``, ``effects``)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -41,17 +43,31 @@ def normalized_response(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFr
         return sample_commands(rows, dus, times)
 
     a = effect.command(sampler(t), t, sampler)
-    w = face.hysteresis_state(a, rows_idx)[::OVERSAMPLE]
-    shift = effect.beta_shift(trial)
+    shift = effect.beta_shift(trial, face.n_markers)
     if beta_jitter is not None:
         shift = shift + beta_jitter[:, None]
-    return dus, face.static_map(w, rows_idx, beta_shift=shift)
+    return dus, face.response(a, rows_idx, beta_shift=shift, step=OVERSAMPLE)
 
 
-def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame | None,
-                   n_frames: int, fps: float, trial: int,
-                   rng: np.random.Generator | None, skin_jitter: bool = True) -> np.ndarray:
-    """True marker positions (n_frames, n_markers, 3) mm of a take.
+@dataclass(frozen=True)
+class TrueTake:
+    """A take's true marker positions and the trial variation drawn for it.
+
+    positions : (n_frames, n_markers, 3) mm. dus : the take's DUs. bias_shift : (n_dus,) the
+    common bias shift of each DU in this take, command units (the base face's trial jitter plus
+    the family's trial shift; zeros without ``rng``). family_shift : (n_dus,) the family's part.
+    """
+
+    positions: np.ndarray
+    dus: tuple[int, ...]
+    bias_shift: np.ndarray
+    family_shift: np.ndarray
+
+
+def true_take(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame | None,
+              n_frames: int, fps: float, trial: int,
+              rng: np.random.Generator | None, skin_jitter: bool = True) -> TrueTake:
+    """True marker positions of a take, with the trial variation drawn for it.
 
     With ``rng`` the trial-to-trial variation and the skin's jitter are drawn (a real take;
     ``skin_jitter=False`` draws the same numbers but leaves the jitter out: the take's response
@@ -60,6 +76,10 @@ def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame |
     dus = take_dus(face, rows)
     n_sel = len(dus)
     beta_jitter = rng.normal(0.0, TRIAL_BETA_SD, n_sel) if (rng is not None and n_sel) else None
+    family_shift = np.zeros(n_sel)
+    if beta_jitter is not None and face.family.trial_shift_sd > 0:
+        family_shift = rng.normal(0.0, face.family.trial_shift_sd, n_sel)
+        beta_jitter = beta_jitter + family_shift
     dus, y = normalized_response(face, effect, rows, n_frames, fps, trial, beta_jitter)
     pos = np.broadcast_to(face.rest_mm, (n_frames, face.n_markers, 3)).copy()
     if dus:
@@ -67,9 +87,20 @@ def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame |
         D = face.D_mm[rows_idx]
         if rng is not None:
             D = D * (1.0 + rng.normal(0.0, TRIAL_AMPLITUDE_SD, D.shape[:2]))[..., None]
-        pos += effect.displacement(y, D, face.normals)
+        paths = None
+        if face.family.path != "straight":
+            paths = lambda y_eff: face.displacement(y_eff, D, rows_idx)
+        pos += effect.displacement(y, D, face.normals, paths=paths)
     if rng is not None:
         jitter = rng.normal(0.0, SKIN_JITTER_MM, pos.shape)
         if skin_jitter:
             pos += jitter
-    return pos
+    shift = np.zeros(n_sel) if beta_jitter is None else beta_jitter
+    return TrueTake(pos, tuple(dus), shift, family_shift)
+
+
+def true_positions(face: VirtualFace, effect: HiddenEffect, rows: pd.DataFrame | None,
+                   n_frames: int, fps: float, trial: int,
+                   rng: np.random.Generator | None, skin_jitter: bool = True) -> np.ndarray:
+    """True marker positions (n_frames, n_markers, 3) mm of a take (see :func:`true_take`)."""
+    return true_take(face, effect, rows, n_frames, fps, trial, rng, skin_jitter).positions

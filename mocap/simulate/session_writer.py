@@ -10,10 +10,17 @@
   the same order: index of the true point (marker order of ``face.parquet``; wand or ground marker
   index), -1 for a ghost, -2 for a merged blob;
 - ``face.parquet``: per DU and marker the true peak displacement vector and response parameters;
-- ``properties.csv``: the paper's indices of the true face per DU, defined as the estimator
-  defines them (``true_properties``);
-- ``truth.json``: the configuration, seed, hidden effect and its equation's parameters, the
-  nose-bridge marker, the degraded camera, per-take metadata.
+- ``properties.csv`` (written by ``mocap simulate``, not by :func:`simulate`): the paper's
+  indices of the true face per DU, defined as the estimator defines them
+  (``mocap.truth_properties``, which lives above the analysis: the simulator imports nothing
+  from it);
+- ``truth.json``: the configuration, seed, face family (``face_family``: the family drawn when
+  the configuration asked for ``random``, with its settings), hidden effect and its equation's
+  parameters, the nose-bridge marker, the degraded camera, per-take metadata (with each DU's
+  common bias shift in the take, ``bias_shift``, and the family's part of it, ``family_shift``,
+  command units).
+
+The session itself never names the face family.
 
 Every take gets its own random stream (seeded by the session seed and the take's name), so a
 session is deterministic for a seed and one take does not change when others are added.
@@ -33,7 +40,6 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
 from mocap.calib.calibration_file import write_calibration
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
@@ -42,8 +48,10 @@ from mocap.simulate.capture import observe
 from mocap.simulate.config import SimConfig
 from mocap.simulate.dus import DU_BY_ID
 from mocap.simulate.face import VirtualFace, make_face
-from mocap.simulate.motion import true_positions
+from mocap.simulate.families import family_stream, resolve_family
+from mocap.simulate.motion import true_take
 from mocap.simulate.rig import GROUND_MARKERS_MM, WAND_OFFSETS_MM, make_rig, wand_motion
+from mocap.simulate.smile import SmileTiming, nominal_branches, smile_commands
 
 RESPONSE_TAIL_S = 0.05  # one more step at 0 after the trapezoid's last row
 BATTERY_TAIL_S = 0.5
@@ -84,16 +92,6 @@ def field_pairs(face: VirtualFace, max_pairs: int) -> list[tuple[int, int]]:
     return pairs
 
 
-def nominal_responses(du_ids) -> dict[int, SigmoidPair]:
-    """The DUs' nominal full-sweep sigmoids (bias +- half the loop width): the design basis of
-    the simulated motion takes (a perfectly identified paper model)."""
-    out = {}
-    for du in du_ids:
-        s = DU_BY_ID[du]
-        out[du] = SigmoidPair(s.alpha, s.beta + s.hysteresis / 2, s.alpha, s.beta - s.hysteresis / 2)
-    return out
-
-
 def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
     """The session's takes in manifest order."""
     takes: list[PlannedTake] = []
@@ -109,11 +107,11 @@ def plan_takes(cfg: SimConfig, face: VirtualFace) -> list[PlannedTake]:
                                      purpose="the paper's trapezoid"))
     motion_dus = [d for d in cfg.motion_dus if d in face.du_ids]
     if motion_dus and cfg.motion_plans:
-        timing = PlanTiming()
-        responses = nominal_responses(motion_dus)
+        timing = SmileTiming()
+        branches = nominal_branches(motion_dus)
         label = "_".join(f"{d:02d}" for d in motion_dus)
         for p in cfg.motion_plans:
-            rows = paper_design(p, responses, timing)
+            rows = smile_commands(p, branches, timing)
             takes.append(PlannedTake(f"smile_du{label}_plan{p}", "motion", rows, plan=p,
                                      duration_s=timing.total_s,
                                      purpose="the paper's smile design through inverse sigmoids"))
@@ -197,55 +195,10 @@ def virtual_rig_and_face(cfg: SimConfig):
     """The true rig and face of a configuration (what ``simulate`` draws first)."""
     master = np.random.default_rng(cfg.seed)
     rig = make_rig(master, cfg.n_cameras, width=cfg.width, height=cfg.height)
-    face = make_face(master, cfg.n_markers, cfg.du_ids)
+    family = resolve_family(cfg.face_family, cfg.seed)
+    face = make_face(master, cfg.n_markers, cfg.du_ids, family=family,
+                     family_rng=family_stream(cfg.seed, "traits"))
     return master, rig, face
-
-
-def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: float | None = None,
-                    keep: dict | None = None) -> pd.DataFrame:
-    """The paper's indices of the true face, defined as the estimator defines them.
-
-    Per DU: the mean over the session's trials of the true responses to the paper's trapezoid
-    (each trial with its own trial-to-trial variation and the hidden effect, as the pipeline
-    averages them, but without the skin's frame-to-frame jitter and without measurement noise),
-    normalised like the pipeline's (``mocap.analysis.displacement.normalized_along``), fitted by the
-    same code (``mocap.analysis.properties.du_properties``). Markers: ``keep[du]`` (a set of
-    marker names, e.g. the ones the pipeline fitted) when given; else those whose true peak
-    displacement reaches ``min_displacement_mm`` (default: the pipeline's signal-to-noise rule at
-    the nominal noise, 20 x 0.025 mm / sqrt(trials), and at least 0.05 mm), the nose-bridge marker
-    left out as the pipeline leaves it.
-    """
-    if min_displacement_mm is None:
-        min_displacement_mm = max(0.05, 20.0 * 0.025 / np.sqrt(cfg.n_trials))
-    from mocap.analysis.displacement import normalized, normalized_along
-    from mocap.analysis.properties import du_properties
-    from mocap.reconstruct.trials import NORMALISE_S
-    from mocap.schedules import sample_commands
-
-    rows = []
-    for du in face.du_ids:
-        sched = trapezoid(du)
-        n_frames = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
-        pos = np.mean([true_positions(face, cfg.effect, sched, n_frames, cfg.fps, k,
-                                      take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
-                       for k in range(1, cfg.n_trials + 1)], axis=0)
-        d = pos - face.rest_mm[None]
-        window = max(1, int(round(NORMALISE_S * cfg.fps)))
-        disp, _ = normalized(d, window)
-        _, delta = normalized_along(d, window)
-        if keep is not None:
-            k = np.isin(np.asarray(face.marker_names), list(keep[du]))
-        else:
-            k = np.nanmax(disp, axis=0) >= min_displacement_mm
-            k[face.nose_bridge] = False
-        command = sample_commands(sched, [du], np.arange(n_frames) / cfg.fps)[:, 0]
-        p = du_properties(du, delta, command, cfg.fps, k, n_boot=0)
-        rows.append({"du": du, "name": DU_BY_ID[du].name, "alpha_fwd": p.fwd.alpha,
-                     "beta_fwd": p.fwd.beta, "alpha_bwd": p.bwd.alpha, "beta_bwd": p.bwd.beta,
-                     "sensitivity": p.sensitivity, "hysteresis": p.hysteresis,
-                     "dyssynchrony": p.dyssynchrony, "max_displacement_mm": float(np.nanmax(disp)),
-                     "n_markers": int(k.sum())})
-    return pd.DataFrame(rows)
 
 
 def simulate(cfg: SimConfig, out_dir: str | Path,
@@ -284,6 +237,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     n_blobs_total = 0
     for i, t in enumerate(takes, start=1):
         rng = take_rng(cfg.seed, t.name)
+        shifts = {}
         n_frames = int(round(t.duration_s * cfg.fps))
         if t.kind == "wand":
             pos = wand_motion(rng, n_frames, cfg.fps, WAND_OFFSETS_MM)
@@ -297,7 +251,10 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
             names = [f"G{k + 1}" for k in range(pos.shape[1])]
             normals, allow, jit, obs_points = None, None, None, pos
         else:
-            pos = true_positions(face, cfg.effect, t.rows, n_frames, cfg.fps, t.trial or 1, rng)
+            tt = true_take(face, cfg.effect, t.rows, n_frames, cfg.fps, t.trial or 1, rng)
+            pos = tt.positions
+            shifts = {"bias_shift": {str(d): float(v) for d, v in zip(tt.dus, tt.bias_shift)},
+                      "family_shift": {str(d): float(v) for d, v in zip(tt.dus, tt.family_shift)}}
             names = list(face.marker_names)
             normals, allow, jit, obs_points = face.normals, allowed, jitter, pos
         write_parquet(_long(t.name, names, pos), truth / "trajectories" / f"{t.name}.parquet")
@@ -333,7 +290,8 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         n_blobs_total += n_rows
         take_meta.append({"name": t.name, "kind": t.kind, "frames": n_frames, "rows": n_rows,
                           "du": t.du, "trial": t.trial, "plan": t.plan, "purpose": t.purpose,
-                          "dus": sorted(set(int(d) for d in t.rows["du"])) if t.rows is not None else []})
+                          "dus": sorted(set(int(d) for d in t.rows["du"])) if t.rows is not None else [],
+                          **shifts})
         say(f"[{i}/{len(takes)}] {t.name}: {n_frames} frames, {n_rows} rows")
 
     if not cfg.labeled:
@@ -343,10 +301,10 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)
     write_parquet(face_table(face), truth / "face.parquet")
-    write_csv(true_properties(cfg, face), truth / "properties.csv")
     info = {
         "generator": f"facemocap {__version__} mocap simulate",
         "config": _jsonable(dataclasses.asdict(cfg)),
+        "face_family": {**face.family.describe(), "requested": cfg.face_family},
         "effect": cfg.effect.describe(),
         "nose_bridge_marker": face.marker_names[face.nose_bridge],
         "nose_bridge_cameras": [rig.ids[i] for i in nb_cams],
@@ -367,7 +325,15 @@ def labeled_noise(rng, shape, sd_mm, extra_mm):
 
 
 def face_table(face: VirtualFace) -> pd.DataFrame:
+    """Per DU and marker: rest position, peak vector, response parameters (and the family's
+    traits, ``alpha_bwd`` and the path vector ``path_x/y/z`` mm, for families other than pi)."""
     n, m = face.alpha.shape
+    extra = {}
+    if face.traits is not None:
+        extra = {"alpha_bwd": face.traits.alpha_bwd.ravel(),
+                 "path_x": face.traits.path_vec[..., 0].ravel(),
+                 "path_y": face.traits.path_vec[..., 1].ravel(),
+                 "path_z": face.traits.path_vec[..., 2].ravel()}
     return pd.DataFrame({
         "du": np.repeat(face.du_ids, m),
         "marker": np.tile(face.marker_names, n),
@@ -381,6 +347,7 @@ def face_table(face: VirtualFace) -> pd.DataFrame:
         "alpha": face.alpha.ravel(),
         "beta": face.beta.ravel(),
         "r_half": face.r_half.ravel(),
+        **extra,
     })
 
 
