@@ -359,8 +359,15 @@ def n_parameters(model: FaceModel, effect_name: str) -> int:
     return int(model.active.sum()) * max(per, 1)
 
 
+def fit_base(data: ModelData, effects, takes) -> FaceModel:
+    """The base model on ``takes``: a cold fit polished by a warm one, as converged as a
+    candidate's final fit (else a candidate at its null value would win by the polish alone)."""
+    m = fit_curves(data, effects, takes)
+    return fit_curves(data, m.effects, takes, warm=m)
+
+
 def cv_base(data: ModelData, effects) -> CVFit:
-    models = [fit_curves(data, effects, fold_takes(data, f)) for f in (0, 1)]
+    models = [fit_base(data, effects, fold_takes(data, f)) for f in (0, 1)]
     s, n, _ = heldout(data, models)
     return CVFit(models, s, n)
 
@@ -536,7 +543,7 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
                      prep.phase_labels)]
     residual_sets = [res]
-    stage_models = [fit_curves(data, effects, list(range(len(data.takes))))]
+    stage_models = [fit_base(data, effects, list(range(len(data.takes))))]
     say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
         f"noise floor {floor:.4f} mm ({prep.noise_source})")
     untestable = {}

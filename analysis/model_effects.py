@@ -183,7 +183,8 @@ class Backlash(Effect):
     order: ClassVar[int] = 2
     grid: ClassVar[tuple[float, ...]] = (0.0, 3.0, 7.0, 12.0, 18.0, 26.0)
     bounds: ClassVar[tuple[float, float]] = (0.0, 50.0)
-    min_plausible: ClassVar[float] = 1.0
+    # a dead band of a few units is what a branch shape the base cannot follow looks like
+    min_plausible: ClassVar[float] = 3.0
 
     def actuator(self, a, t, sampler):
         if self.value <= 0:
