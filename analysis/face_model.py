@@ -237,20 +237,39 @@ def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray) -> np.ndarray:
 
 
 def pair_kappa(model: FaceModel) -> float:
-    """The coupling law's kappa that best matches the fitted pair vectors: least squares of
-    C_pair,m = -kappa (o_n'm D_nm + o_nm D_n'm) over pairs and markers, o the DU's relative pull
-    (|D_nm| / max_m |D_nm|), so that the model's own law reads back its kappa."""
+    """The coupling's kappa read from the fitted pair vectors: the fraction of a DU's displacement
+    lost while another DU is at full command, at the markers most in the other DU's field.
+
+    Per pair and marker, C_m = -(a_m D_nm + b_m D_n'm) by least squares gives the fractions lost
+    by each DU; two laws are fitted to them, weighted by |D|^2: a_m = kappa o_n'm (the loss
+    grows with the other DU's relative pull o = |D_n'm| / max_m |D_n'm|) and a_m = kappa (the
+    same at every marker); the better fit's kappa is returned (both laws agree on it where
+    o = 1, the marker most in the other DU's field)."""
     if not model.pairs or model.C is None:
         return 0.0
     mag = np.linalg.norm(model.D, axis=-1)
     o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
-    num = den = 0.0
+    loss, pull, wt = [], [], []
     for k, (a, b) in enumerate(model.pairs):
         i, j = model.du_ids.index(a), model.du_ids.index(b)
-        g = -(o[j][:, None] * model.D[i] + o[i][:, None] * model.D[j])  # (M, 3)
-        num += float(np.sum(g * model.C[k]))
-        den += float(np.sum(g * g))
-    return num / den if den > 0 else 0.0
+        A = -np.stack([model.D[i], model.D[j]], axis=-1)  # (M, 3, 2)
+        G = np.einsum("mxp,mxq->mpq", A, A)
+        ok = (model.active[i] & model.active[j] & (np.linalg.det(G) >
+                                                   1e-6 * np.einsum("mpp->m", G) ** 2 + 1e-18))
+        if not ok.any():
+            continue
+        f = np.linalg.solve(G[ok], np.einsum("mxp,mx->mp", A[ok], model.C[k, ok])[..., None])[..., 0]
+        loss += [f[:, 0], f[:, 1]]
+        pull += [o[j, ok], o[i, ok]]
+        wt += [mag[i, ok] ** 2, mag[j, ok] ** 2]
+    if not loss:
+        return 0.0
+    a, p, w = np.concatenate(loss), np.concatenate(pull), np.concatenate(wt)
+    k1 = float(np.sum(w * a * p) / max(np.sum(w * p * p), 1e-300))
+    k2 = float(np.sum(w * a) / max(np.sum(w), 1e-300))
+    sse1 = float(np.sum(w * (a - k1 * p) ** 2))
+    sse2 = float(np.sum(w * (a - k2) ** 2))
+    return k1 if sse1 <= sse2 else k2
 
 
 def bow_ratio(model: FaceModel) -> float:
