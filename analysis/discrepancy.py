@@ -566,18 +566,6 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
            steps, named, evidence, runner, say) -> DiscrepancyResult:
     floor = prep.noise_floor_mm
     alternatives: list[dict] = []
-    base_model = stage_models[0]
-    if "drift" in settings.candidates and base_model.shifts_takes:
-        step, alt = drift_step(data, base_model, current.rms_mm, untestable)
-        if alt:
-            alternatives.append(alt)
-        if step is not None:
-            named.append("drift")
-            steps.append(step)
-            stage_models.append(with_drift(base_model, step.parameters["beta_per_trial"]))
-            residual_sets.append(res)
-            stages.append({**stages[-1], "model": stages[-1]["model"] + "+drift"})
-            say(f"named drift {step.parameters}: a trend of the base's per-trial shifts")
     for _ in range(settings.max_steps):
         have = {type(e).name for e in current.models[0].effects}
         if current.models[0].shifts_takes:
@@ -657,6 +645,20 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
                           per_du))
         say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")
+    # drift last: the trend of the takes' bias shifts, read from the final model (an effect still
+    # missing, such as a lag, would bias the shifts)
+    last = stage_models[-1]
+    if "drift" in settings.candidates and last.shifts_takes:
+        step, alt = drift_step(data, last, current.rms_mm, untestable)
+        if alt:
+            alternatives.append(alt)
+        if step is not None:
+            named.append("drift")
+            steps.append(step)
+            stage_models.append(with_drift(last, step.parameters["beta_per_trial"]))
+            residual_sets.append(residual_sets[-1])
+            stages.append({**stages[-1], "model": stages[-1]["model"] + "+drift"})
+            say(f"named drift {step.parameters}: a trend of the takes' bias shifts")
     return DiscrepancyResult(named=named, steps=steps, noise_floor_mm=floor,
                              noise_source=prep.noise_source, base_effects=tuple(settings.base),
                              untestable=untestable, stages=stages, final_model=stage_models[-1],

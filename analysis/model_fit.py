@@ -601,6 +601,31 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     s_best, m_best = cache[best_key]
     if fixed is None:  # final polish of the curves at the chosen value
         m_best = fit_curves(data, m_best.effects, takes, warm=m_best, iters=30)
+    if fixed is None and refine and cls.stage == "actuator" and m_best.hysteresis:
+        # the hysteresis density was fitted without this effect and absorbed part of it (a lag
+        # widens the loops): profile again around the best value from the polished model
+        span = 0.5 * (grid[min(i + 1, len(grid) - 1)] - grid[max(i - 1, 0)])
+        warm2 = m_best
+        cache2: dict[float, tuple[float, FaceModel]] = {}
+
+        def evaluate2(v: float) -> float:
+            v = float(np.clip(v, *cls.bounds))
+            key = round(v, 9)
+            if key not in cache2:
+                m = fit_curves(data, others + (cls(v),), takes, warm=warm2, iters=5)
+                cache2[key] = (sse(data, m, takes)[0], m)
+            return cache2[key][0]
+
+        if span > 0:
+            evaluate2(best_key)
+            minimize_scalar(evaluate2, bounds=(max(best_key - span, cls.bounds[0]),
+                                               min(best_key + span, cls.bounds[1])),
+                            method="bounded", options={"xatol": span * 0.02, "maxiter": 6})
+            key2 = min(cache2, key=lambda k: cache2[k][0])
+            if key2 != round(best_key, 9):
+                best_key = key2
+                m_best = fit_curves(data, cache2[key2][1].effects, takes, warm=cache2[key2][1],
+                                    iters=30)
     keys = sorted(cache)
     # sampled data: a delay is resolved to the fine time grid at best
     resolution = 1.0 / (data.fps * OVERSAMPLE) if cls.fine_grid else 0.0
