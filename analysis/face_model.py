@@ -179,7 +179,7 @@ class FaceModel:
             d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C)
         k = 0
         for e in self.effects:
-            for basis in e.bases(y):
+            for basis in e.bases(y_eff):  # the path is followed to where the response got
                 d = d + np.einsum("snm,nmk->smk", basis, self.B[rows, :, k])
                 k += 1
         for e in self.effects:
@@ -208,8 +208,8 @@ class FaceModel:
             cls = type(e)
             if cls.name == "hysteresis":
                 out[cls.parameter] = float(np.median(self.loop_width()[self.active]))
-            elif cls.name == "coupling" and cls.per_curve:
-                out[cls.parameter] = pair_kappa(self)
+            elif cls.name == "coupling" and self.pairs:
+                out[cls.parameter] = float(self.info.get("coupling_kappa", pair_kappa(self)))
             elif cls.name == "curvature":
                 out[cls.parameter] = bow_ratio(self)
             else:

@@ -216,11 +216,15 @@ class Coupling(Effect):
     bounds: ClassVar[tuple[float, float]] = (-1.0, 1.0)
     min_plausible: ClassVar[float] = 0.02
 
+    uniform: bool = False  # the scalar law's loss the same at every marker (o = 1)
+
     def interact(self, y, D):
         if self.value == 0 or y.shape[1] < 2:
             return y
         mag = np.linalg.norm(D, axis=-1)  # (N, M)
         o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+        if self.uniform:
+            o = np.ones_like(o)
         yo = y * o[None]
         others = yo.sum(axis=1, keepdims=True) - yo
         return y * (1.0 - self.value * others)

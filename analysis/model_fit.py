@@ -17,7 +17,7 @@ is piecewise constant at that scale).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -517,6 +517,48 @@ def _fit_pairs(data: ModelData, model: FaceModel, takes) -> None:
     seen = np.einsum("mpp->mp", G) > 0
     C = np.linalg.solve(G + ridge + np.eye(P) * (~seen)[:, :, None], bvec)  # (M, P, 3)
     model.C = np.transpose(np.where(seen[..., None], C, 0.0), (1, 0, 2)) * model.active.any(axis=0)[None, :, None]
+    model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
+
+
+def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
+    """The coupling's kappa: the fraction of a DU's response lost while another DU is at full
+    command, at the markers most in the other DU's field. The pair vectors C are not unique when
+    takes drive three DUs with one time course, so kappa is read by refitting the multi-DU takes
+    ``multi`` with a scalar law instead of C, y_n -> y_n (1 - kappa sum_other y_n' o_n'm), with
+    o the other DU's relative pull (|D_n'm| / max_m |D_n'm|) or o = 1 (the same loss at every
+    marker); the law that fits better gives kappa (both agree where o = 1). Grid then parabola."""
+    from mocap.analysis.model_effects import Coupling
+
+    plain = replace(model, pairs=(), C=None, info={})
+    plain.__post_init__()
+    pre = []
+    for k in multi:
+        t = data.takes[k]
+        sh = model.take_shifts.get(t.name, {})
+        shift = np.array([sh.get(d, 0.0) for d in t.dus])
+        y = plain.response(data.tables(k, plain.effects), list(t.dus), t.trial, shift)
+        obs = data.observed(k)
+        ok = np.isfinite(obs).all(axis=-1) & data.used[None]
+        pre.append((y, list(t.dus), np.where(ok[..., None], obs, 0.0), ok))
+    if not pre:
+        return 0.0
+    grid = np.round(np.arange(-0.3, 1.2001, 0.05), 6)
+    best = (np.inf, 0.0)
+
+    def cost(v: float, uniform: bool) -> float:
+        law = replace(plain, effects=plain.effects + (Coupling(float(v), uniform),))
+        return sum(float(np.sum(np.where(ok[..., None], obs - law.displacement_from_response(y, dus),
+                                         0.0) ** 2)) for y, dus, obs, ok in pre)
+
+    for uniform in (False, True):
+        c = np.array([cost(v, uniform) for v in grid])
+        i = int(np.clip(np.argmin(c), 1, grid.size - 2))
+        a, b, _ = np.polyfit(grid[i - 1:i + 2], c[i - 1:i + 2], 2)
+        v = float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
+        cv = cost(v, uniform)
+        if cv < best[0]:
+            best = (cv, v)
+    return best[1]
 
 
 # ----------------------------------------------------------------------------------------------
