@@ -1,8 +1,9 @@
 """The model-discrepancy workflow: find where the face model and the measurement disagree,
 name the missing effect, add it, show the gap shrink.
 
-1. Fit the current model (the paper's: PI hysteresis + logistic, :mod:`mocap.analysis.face_model`)
-   on identification takes.
+1. Fit the base model (:data:`mocap.analysis.model_effects.BASE`: a PI hysteresis density +
+   logistic, each marker's own path, a bias shift per take and DU; what every face has,
+   :mod:`mocap.analysis.model_fit`) on identification takes.
 2. Predict every take and compare with the measurement; residuals per take, DU, marker and
    phase of the command (:func:`phases`).
 3. Localise the disagreement against the measurement's own noise floor (:func:`noise_floor`,
@@ -18,7 +19,9 @@ name the missing effect, add it, show the gap shrink.
    is physically plausible in both folds, and the session's takes can test it; else "no missing
    effect found".
 6. Add it and repeat (forward stepwise; a named effect's parameter is re-identified on all
-   takes, with its uncertainty from the profile).
+   takes, with its uncertainty from the profile). Drift last, from the final model: the trend
+   over trials of the takes' bias shifts (:func:`drift_step`), named when it stands out of the
+   takes' random scatter, reported as an alternative when it only half does.
 7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
    to the noise floor.
 

@@ -4,19 +4,32 @@ The paper's static model, with a rule for reversals, plus composable effects
 (:mod:`mocap.analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
 
     a_n(t)   = actuator-stage effects of the command c_n(t)       (identity in the base model)
-    w_nm(t)  = PI_{r_nm}[a_n](t)       Prandtl-Ishlinskii operator: mean of plays of half-widths
-                                        r_nm * (0, 0.5, 1, 1.5, 2), from rest (r = 0 without the
-                                        ``hysteresis`` effect)
+    w_nm(t)  = sum_f q_nf play_{r_nm f}[a_n](t)   Prandtl-Ishlinskii operator with a DENSITY: play
+               half-widths r_nm f on the grid f in DENSITY_FRACTIONS (0, .25, ..., 2), weights
+               q_nf >= 0 summing to 1 per DU (identified; the paper-model's equal plays at
+               f = 0, .5, 1, 1.5, 2 are the default), from rest (r = 0 without ``hysteresis``)
     y_nm(t)  = (S(w) - S(0)) / (S(255) - S(0)),  S(w) = 1 / (1 + exp(-alpha_nm (w - beta_nm - s)))
-               s = sum of the effects' bias shifts for the take's trial
+               s = the effects' bias shifts for the take's trial + the take's own shift s_kn
+               (``takeshift``: one per take and DU, identified on the take itself)
     y       -> interact(y)                                   (several DUs at once)
-    d_m(t)   = sum_n y_nm D_nm + sum_k basis_k(y_nm) B_nmk    (path bases: ``curvature``)
+    d_m(t)   = sum_n [y_nm D_nm + sum_k b_k(y_nm) B_nmk]      each marker's own path
+               (``curvature``: b = 4 y (1 - y), 6 sqrt 3 y (1 - y) (1 - 2 y), 16 y^2 (1 - y)^2)
+             + sum_{n < n'} y_nm y_n'm C_nn'm                 (``coupling``: a 3D vector per DU
+                                                               pair driven together and marker)
     x_m(t)   = rest_m + output(d_m(t))                        (``saturation``)
 
+The base model of the discrepancy workflow (``model_effects.BASE``) is ``hysteresis`` (the
+density), ``curvature`` (each marker's path, any quartic in y through rest: bows, paths that end
+off the chord, a per-DU compression of the displacement) and ``takeshift``: what every face has,
+so that a face with no missing effect fits to its noise floor whatever its hysteresis operator
+and path shape.
+
 The rule for reversals is the PI operator's: on a full sweep 0 -> 255 -> 0 the forward branch is
-the logistic of about c - r and the backward one of about c + r (the paper's forward and backward
-sigmoids, hysteresis 2 r); after a reversal inside the range the response moves at once with a
-fifth of its slope and steepens as wider plays release (Preisach minor loops).
+the logistic of about c - r sum q f and the backward one of about c + r sum q f (loop width
+2 r sum_f q_f f); after a reversal inside the range the response moves at once with the weight
+of the narrow plays and steepens as wider plays release (Preisach minor loops); a density on one
+width is a branch play (flat after a reversal until the other branch), a spread one follows
+smooth (Bouc-Wen-like) loops.
 
 Time: commands are sampled per FORMAT.md on a grid ``OVERSAMPLE`` times finer than the frames
 (for the actuator dynamics and the plays); responses are read at the frames.
