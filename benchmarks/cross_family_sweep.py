@@ -157,6 +157,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="1,2,3")
     ap.add_argument("--shard", default="0/1", help="i/n: run every n-th case from the i-th")
     ap.add_argument("--summarise", nargs="*", type=Path, help="JSON-lines files of earlier runs")
+    ap.add_argument("--note", default="", help="a paragraph added to the table (how it was run)")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     planned = len(cases(seeds))
@@ -164,6 +165,9 @@ def main() -> int:
         rows = [json.loads(line) for p in args.summarise for line in p.read_text().splitlines()
                 if line.startswith("{")]
         summary, md = summarise(rows, planned)
+        if args.note:
+            head, sep, tail = md.partition("| target |")
+            md = head + args.note.strip() + "\n\n" + sep + tail
         (HERE / "cross_family_sweep.json").write_text(json.dumps({"summary": summary, "rows": rows},
                                                                  indent=1) + "\n")
         (HERE / "cross_family_sweep.md").write_text(md)
