@@ -1,8 +1,9 @@
 """The model-discrepancy workflow: find where the face model and the measurement disagree,
 name the missing effect, add it, show the gap shrink.
 
-1. Fit the current model (the paper's: PI hysteresis + logistic, :mod:`mocap.analysis.face_model`)
-   on identification takes.
+1. Fit the base model (:data:`mocap.analysis.model_effects.BASE`: a PI hysteresis density +
+   logistic, each marker's own path, a bias shift per take and DU; what every face has,
+   :mod:`mocap.analysis.model_fit`) on identification takes.
 2. Predict every take and compare with the measurement; residuals per take, DU, marker and
    phase of the command (:func:`phases`).
 3. Localise the disagreement against the measurement's own noise floor (:func:`noise_floor`,
@@ -18,7 +19,9 @@ name the missing effect, add it, show the gap shrink.
    is physically plausible in both folds, and the session's takes can test it; else "no missing
    effect found".
 6. Add it and repeat (forward stepwise; a named effect's parameter is re-identified on all
-   takes, with its uncertainty from the profile).
+   takes, with its uncertainty from the profile). Drift last, from the final model: the trend
+   over trials of the takes' bias shifts (:func:`drift_step`), named when it stands out of the
+   takes' random scatter, reported as an alternative when it only half does.
 7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
    to the noise floor.
 
@@ -33,7 +36,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mocap.analysis.face_model import FaceModel, make_effects
-from mocap.analysis.model_effects import CATALOGUE, ScheduleSummary, summarize_schedules
+from mocap.analysis.model_effects import (
+    BASE,
+    CANDIDATES,
+    CATALOGUE,
+    ScheduleSummary,
+    summarize_schedules,
+)
 from mocap.analysis.model_fit import (
     ModelData,
     TakeData,
@@ -52,9 +61,11 @@ PHASES = ("rest", "hold", "rise-fast", "rise", "rise-slow", "fall-fast", "fall",
 class DiscrepancySettings:
     """Settings of the workflow (defaults as documented in the module docstring).
 
-    base : the starting model's effects (``("hysteresis",)`` is the paper's model; ``()`` a
-        static model without hysteresis).
-    candidates : effect names to try (default: the whole catalogue).
+    base : the starting model's effects: by default what every face has (a PI hysteresis density,
+        each marker's own path, per-trial bias shifts); ``("hysteresis",)`` is the paper's model
+        with straight paths, ``()`` a static model without hysteresis.
+    candidates : effect names to try (default: the missing effects of the catalogue; base
+        effects are never candidates).
     margin : held-out BIC units a candidate must gain.  min_explained : fraction of the held-out
         excess over the noise floor it must explain.  min_rms_gain : the held-out RMS it must
         remove, as a fraction of the noise floor (a gain nobody could see in the data is not an
@@ -72,8 +83,8 @@ class DiscrepancySettings:
     jobs : processes over candidates (spawned; 1 runs in this process).
     """
 
-    base: tuple[str, ...] = ("hysteresis",)
-    candidates: tuple[str, ...] = tuple(CATALOGUE)
+    base: tuple[str, ...] = BASE
+    candidates: tuple[str, ...] = CANDIDATES
     margin: float = 10.0
     min_explained: float = 0.2
     min_rms_gain: float = 0.03
@@ -341,14 +352,25 @@ def effective_n(residuals: list[np.ndarray], used: np.ndarray) -> float:
 def n_parameters(model: FaceModel, effect_name: str) -> int:
     """Parameters an effect adds: 1 for a global value, else per active curve."""
     cls = CATALOGUE[effect_name]
+    if cls.pairwise:  # a 3D vector per DU pair driven together and marker
+        return 3 * max(len(model.pairs), 1) * int(model.active.any(axis=0).sum())
+    if cls.name == "takeshift":
+        return max(sum(len(v) for v in model.take_shifts.values()), 1)
     if not cls.per_curve:
         return 1
     per = (1 if cls.frees_r else 0) + 3 * cls.n_bases
     return int(model.active.sum()) * max(per, 1)
 
 
+def fit_base(data: ModelData, effects, takes) -> FaceModel:
+    """The base model on ``takes``: a cold fit polished by a warm one, as converged as a
+    candidate's final fit (else a candidate at its null value would win by the polish alone)."""
+    m = fit_curves(data, effects, takes)
+    return fit_curves(data, m.effects, takes, warm=m)
+
+
 def cv_base(data: ModelData, effects) -> CVFit:
-    models = [fit_curves(data, effects, fold_takes(data, f)) for f in (0, 1)]
+    models = [fit_base(data, effects, fold_takes(data, f)) for f in (0, 1)]
     s, n, _ = heldout(data, models)
     return CVFit(models, s, n)
 
@@ -449,6 +471,8 @@ class DiscrepancyResult:
     excluded_markers: list[str]
     heldout_residuals: list[list[np.ndarray]]  # per stage, per take (S, M, 3)
     models_by_stage: list[FaceModel]
+    base_report: dict = field(default_factory=dict)  # what the base model holds (path, loop, shifts)
+    alternatives: list[dict] = field(default_factory=list)  # explanations the data cannot tell apart
 
     @property
     def final_heldout_rms_mm(self) -> float:
@@ -522,7 +546,7 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
                      prep.phase_labels)]
     residual_sets = [res]
-    stage_models = [fit_curves(data, effects, list(range(len(data.takes))))]
+    stage_models = [fit_base(data, effects, list(range(len(data.takes))))]
     say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
         f"noise floor {floor:.4f} mm ({prep.noise_source})")
     untestable = {}
@@ -544,8 +568,11 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
 def _steps(data, prep, settings, current, res, stages, residual_sets, stage_models, untestable,
            steps, named, evidence, runner, say) -> DiscrepancyResult:
     floor = prep.noise_floor_mm
+    alternatives: list[dict] = []
     for _ in range(settings.max_steps):
         have = {type(e).name for e in current.models[0].effects}
+        if current.models[0].shifts_takes:
+            have.add("drift")  # decided from the takes' bias shifts above
         n_eff = effective_n(res, data.used)
         mse_cur = 3.0 * current.sse / max(current.n, 1)
         excess = mse_cur - floor ** 2
@@ -568,9 +595,10 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                 say(f"  {name:<10} no held-out gain on the first fold ({t_c:.1f} s)")
                 continue
             fits[name] = cv
-            score = n_eff * np.log(cv.sse / current.sse) + n_parameters(current.models[0], name) * np.log(n_eff)
+            score = n_eff * np.log(cv.sse / current.sse) + n_parameters(cv.models[0], name) * np.log(n_eff)
             mse = 3.0 * cv.sse / max(cv.n, 1)
-            explained = (mse_cur - mse) / excess if excess > 0 else 0.0
+            # with take shifts the base can fit under the trial noise floor: then any gain counts
+            explained = (mse_cur - mse) / excess if excess > 0 else 1.0
             plausible = all(CATALOGUE[name](v).plausible() for v in (cv.values or [0.0]))
             item = {"effect": name, "testable": True, "score": float(score),
                     "heldout_rms_mm": cv.rms_mm, "explained": float(explained),
@@ -582,7 +610,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         ok = [e for e in evidence if e.get("testable") and not e.get("screened_out")
               and e["score"] < -settings.margin and e["explained"] >= settings.min_explained
               and e["rms_gain_vs_noise"] >= settings.min_rms_gain and e["plausible"]]
-        if not ok or excess <= 0:
+        if not ok:
             break
         best = min(ok, key=lambda e: e["score"])
         name = best["effect"]
@@ -620,11 +648,129 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
                           per_du))
         say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")
+    # drift last: the trend of the takes' bias shifts, read from the final model (an effect still
+    # missing, such as a lag, would bias the shifts)
+    last = stage_models[-1]
+    if "drift" in settings.candidates and last.shifts_takes:
+        step, alt = drift_step(data, last, current.rms_mm, untestable)
+        if alt:
+            alternatives.append(alt)
+        if step is not None:
+            named.append("drift")
+            steps.append(step)
+            stage_models.append(with_drift(last, step.parameters["beta_per_trial"]))
+            residual_sets.append(residual_sets[-1])
+            stages.append({**stages[-1], "model": stages[-1]["model"] + "+drift"})
+            say(f"named drift {step.parameters}: a trend of the takes' bias shifts")
     return DiscrepancyResult(named=named, steps=steps, noise_floor_mm=floor,
                              noise_source=prep.noise_source, base_effects=tuple(settings.base),
                              untestable=untestable, stages=stages, final_model=stage_models[-1],
                              final_evidence=evidence, excluded_markers=prep.excluded,
-                             heldout_residuals=residual_sets, models_by_stage=stage_models)
+                             heldout_residuals=residual_sets, models_by_stage=stage_models,
+                             base_report=base_report(stage_models[0]), alternatives=alternatives)
+
+
+def shift_trend(points: list[tuple[int, int, float]]) -> dict:
+    """Least-squares trend of the takes' bias shifts over the trial number, one intercept per DU:
+    s = a_DU + k trial. points : (trial, DU, shift command units) per take and DU.
+
+    Returns the slope k (command units per trial), its standard error from the scatter about the
+    fit (the takes' random shifts), the t ratio, the scatter's SD, and the counts; with fewer
+    than 3 distinct trials, only the counts."""
+    tr = np.array([p[0] for p in points], float)
+    du = np.array([p[1] for p in points])
+    v = np.array([p[2] for p in points], float)
+    out = {"trials": int(np.unique(tr).size), "points": int(v.size)}
+    if out["trials"] < 3:
+        return out
+    ids = np.unique(du)
+    A = np.column_stack([tr] + [(du == d).astype(float) for d in ids])
+    coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+    res = v - A @ coef
+    dof = max(v.size - A.shape[1], 1)
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.pinv(A.T @ A)
+    se = float(np.sqrt(max(cov[0, 0], 1e-30)))
+    return {**out, "slope": float(coef[0]), "slope_se": se, "t": float(coef[0] / se),
+            "scatter_sd": float(np.sqrt(s2))}
+
+
+DRIFT_MIN_RATE = 0.5  # command units per trial: a smaller trend is no drift worth naming
+DRIFT_T = 4.0  # slope / its standard error to name a drift
+DRIFT_T_AMBIGUOUS = 2.0  # above this (and under DRIFT_T): reported as an alternative
+
+
+def take_shift_points(data: ModelData, model: FaceModel, takes=None) -> list[tuple[int, int, float]]:
+    ks = range(len(data.takes)) if takes is None else takes
+    return [(data.takes[k].trial, du, v) for k in ks
+            for du, v in model.take_shifts.get(data.takes[k].name, {}).items()]
+
+
+def drift_step(data: ModelData, model: FaceModel, rms: float, untestable: dict):
+    """Decide drift from the base model's bias shift per take and DU (fitted on all takes).
+
+    A drift is a trend over the trial number; a take's random shift is not. Named when the
+    trend's slope is at least :data:`DRIFT_MIN_RATE` per trial and :data:`DRIFT_T` standard
+    errors (from the takes' scatter about the trend); between :data:`DRIFT_T_AMBIGUOUS` and
+    :data:`DRIFT_T` both explanations are reported as an alternative and nothing is named; with
+    fewer than 3 trials a trend cannot be told from a random shift (untestable). Returns
+    (Step or None, alternative dict or None). The held-out RMS does not change: the base
+    already holds each take's shift; the step says what they are.
+    """
+    tr = shift_trend(take_shift_points(data, model))
+    if tr["trials"] < 3:
+        if "drift" not in untestable:
+            untestable["drift"] = "fewer than 3 trials: a trend cannot be told from a random shift"
+        return None, None
+    ev = {"effect": "drift", "testable": True, "shifts": True,
+          **{k: round(float(v), 5) for k, v in tr.items()}}
+    big = abs(tr["slope"]) >= DRIFT_MIN_RATE
+    if big and abs(tr["t"]) >= DRIFT_T:
+        per_du = {}
+        for du in data.du_ids:
+            pts = [p for p in take_shift_points(data, model) if p[1] == du]
+            one = shift_trend(pts)
+            if "slope" in one:
+                per_du[int(du)] = round(one["slope"], 4)
+        step = Step("drift", {"beta_per_trial": tr["slope"]}, {"beta_per_trial": tr["slope_se"]},
+                    rms, rms, [ev], 0.0, per_du)
+        return step, None
+    if big and abs(tr["t"]) >= DRIFT_T_AMBIGUOUS:
+        return None, {"effects": ["drift", "takeshift"], "evidence": ev,
+                      "reason": (f"the takes' bias shifts move {tr['slope']:.2f} command units per "
+                                 f"trial, {abs(tr['t']):.1f} standard errors of their scatter: a drift "
+                                 "and random take-to-take shifts explain them about equally; the "
+                                 "reference trapezoid repeated in more trials would tell")}
+    return None, None
+
+
+def with_drift(model: FaceModel, k: float) -> FaceModel:
+    """The model with a ``drift`` of k per trial (its takes' shifts are re-identified per take,
+    so held-out predictions do not change; a new schedule's prediction gets the trend)."""
+    from mocap.analysis.model_effects import Drift
+
+    return model.with_effects(model.effects + (Drift(k),))
+
+
+def base_report(model: FaceModel) -> dict:
+    """What the base model holds, per DU: the path bow (|B_1| / |D|, median), the loop width
+    (median, command units), the PI density, and the SD of the takes' bias shifts."""
+    from mocap.analysis.face_model import DENSITY_FRACTIONS, bow_ratio
+
+    out: dict = {}
+    if model.effect("curvature") is not None:
+        out["path_bow"] = round(bow_ratio(model), 4)
+    if model.hysteresis:
+        lw = model.loop_width()
+        out["loop_width"] = {int(d): round(float(np.median(lw[n][model.active[n]])), 3)
+                             for n, d in enumerate(model.du_ids) if model.active[n].any()}
+        out["density_fractions"] = [float(f) for f in DENSITY_FRACTIONS]
+        out["density"] = {int(d): [round(float(q), 4) for q in model.density[n]]
+                          for n, d in enumerate(model.du_ids)}
+    if model.shifts_takes and model.take_shifts:
+        v = np.array([x for sh in model.take_shifts.values() for x in sh.values()], float)
+        out["take_shift_sd"] = round(float(np.std(v)), 4)
+    return out
 
 
 def per_du_values(data: ModelData, model: FaceModel, name: str) -> dict[int, float]:

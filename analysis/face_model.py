@@ -4,19 +4,32 @@ The paper's static model, with a rule for reversals, plus composable effects
 (:mod:`mocap.analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
 
     a_n(t)   = actuator-stage effects of the command c_n(t)       (identity in the base model)
-    w_nm(t)  = PI_{r_nm}[a_n](t)       Prandtl-Ishlinskii operator: mean of plays of half-widths
-                                        r_nm * (0, 0.5, 1, 1.5, 2), from rest (r = 0 without the
-                                        ``hysteresis`` effect)
+    w_nm(t)  = sum_f q_nf play_{r_nm f}[a_n](t)   Prandtl-Ishlinskii operator with a DENSITY: play
+               half-widths r_nm f on the grid f in DENSITY_FRACTIONS (0, .25, ..., 2), weights
+               q_nf >= 0 summing to 1 per DU (identified; the paper-model's equal plays at
+               f = 0, .5, 1, 1.5, 2 are the default), from rest (r = 0 without ``hysteresis``)
     y_nm(t)  = (S(w) - S(0)) / (S(255) - S(0)),  S(w) = 1 / (1 + exp(-alpha_nm (w - beta_nm - s)))
-               s = sum of the effects' bias shifts for the take's trial
+               s = the effects' bias shifts for the take's trial + the take's own shift s_kn
+               (``takeshift``: one per take and DU, identified on the take itself)
     y       -> interact(y)                                   (several DUs at once)
-    d_m(t)   = sum_n y_nm D_nm + sum_k basis_k(y_nm) B_nmk    (path bases: ``curvature``)
+    d_m(t)   = sum_n [y_nm D_nm + sum_k b_k(y_nm) B_nmk]      each marker's own path
+               (``curvature``: b = 4 y (1 - y), 6 sqrt 3 y (1 - y) (1 - 2 y), 16 y^2 (1 - y)^2)
+             + sum_{n < n'} y_nm y_n'm C_nn'm                 (``coupling``: a 3D vector per DU
+                                                               pair driven together and marker)
     x_m(t)   = rest_m + output(d_m(t))                        (``saturation``)
 
+The base model of the discrepancy workflow (``model_effects.BASE``) is ``hysteresis`` (the
+density), ``curvature`` (each marker's path, any quartic in y through rest: bows, paths that end
+off the chord, a per-DU compression of the displacement) and ``takeshift``: what every face has,
+so that a face with no missing effect fits to its noise floor whatever its hysteresis operator
+and path shape.
+
 The rule for reversals is the PI operator's: on a full sweep 0 -> 255 -> 0 the forward branch is
-the logistic of about c - r and the backward one of about c + r (the paper's forward and backward
-sigmoids, hysteresis 2 r); after a reversal inside the range the response moves at once with a
-fifth of its slope and steepens as wider plays release (Preisach minor loops).
+the logistic of about c - r sum q f and the backward one of about c + r sum q f (loop width
+2 r sum_f q_f f); after a reversal inside the range the response moves at once with the weight
+of the narrow plays and steepens as wider plays release (Preisach minor loops); a density on one
+width is a branch play (flat after a reversal until the other branch), a spread one follows
+smooth (Bouc-Wen-like) loops.
 
 Time: commands are sampled per FORMAT.md on a grid ``OVERSAMPLE`` times finer than the frames
 (for the actuator dynamics and the plays); responses are read at the frames.
@@ -36,6 +49,9 @@ from mocap.schedules import sample_commands
 
 OVERSAMPLE = 4
 R_MAX = 48.0  # largest play width r, command units (the table holds half-widths up to 2 r)
+# the PI density's grid: play half-widths / r; the paper-model's equal plays sit on every second
+DENSITY_FRACTIONS = np.round(np.arange(0.0, 2.0001, 0.25), 6)  # (F,)
+EQUAL_DENSITY = np.where(np.isin(DENSITY_FRACTIONS, PLAY_FRACTIONS), 1.0 / PLAY_FRACTIONS.size, 0.0)
 
 
 def actuator_effects(effects) -> list[Effect]:
@@ -95,6 +111,16 @@ class FaceModel:
     B: np.ndarray
     effects: tuple[Effect, ...] = ()
     info: dict = field(default_factory=dict)
+    density: np.ndarray | None = None
+    take_shifts: dict = field(default_factory=dict)  # take name -> {DU id: bias shift}
+    pairs: tuple[tuple[int, int], ...] = ()
+    C: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.density is None:
+            self.density = np.tile(EQUAL_DENSITY, (len(self.du_ids), 1))
+        if self.C is None:
+            self.C = np.zeros((len(self.pairs), len(self.marker_names), 3))
 
     @property
     def effect_names(self) -> list[str]:
@@ -117,12 +143,26 @@ class FaceModel:
     def bias_shift(self, trial) -> np.ndarray | float:
         return sum((e.beta_shift(trial) for e in self.effects), 0.0)
 
-    def response(self, tables: list[np.ndarray], dus, trial) -> np.ndarray:
-        """Normalised responses y (S, n_take_dus, M) from the take's play tables."""
+    @property
+    def shifts_takes(self) -> bool:
+        """Whether the model holds a bias shift per take and DU (the ``takeshift`` base effect)."""
+        return self.effect("takeshift") is not None
+
+    def loop_width(self) -> np.ndarray:
+        """Full-sweep loop width (N, M) of each curve, command units: 2 r x the density's mean
+        fraction (the forward branch runs at c - r sum_f q_f f, the backward one at c + ...)."""
+        return 2.0 * self.r * (self.density @ DENSITY_FRACTIONS)[:, None]
+
+    def response(self, tables: list[np.ndarray], dus, trial, take_shift=None) -> np.ndarray:
+        """Normalised responses y (S, n_take_dus, M) from the take's play tables.
+
+        take_shift : (n_take_dus,) the take's own bias shift per DU, command units (None: 0).
+        """
         S = tables[0].shape[0] if tables else 0
         y = np.zeros((S, len(dus), len(self.marker_names)))
-        shift = np.broadcast_to(np.asarray(self.bias_shift(trial), float), (S,))
+        base = np.broadcast_to(np.asarray(self.bias_shift(trial), float), (S,))
         for j, du in enumerate(dus):
+            shift = base if take_shift is None else base + float(take_shift[j])
             if du not in self.du_ids:
                 continue
             n = self.du_ids.index(du)
@@ -130,7 +170,8 @@ class FaceModel:
             if act.size == 0:
                 continue
             y[:, j, act] = pi_logistic_from_table(tables[j], self.r[n, act], self.alpha[n, act],
-                                                  self.beta[n, act], shift, PLAY_FRACTIONS)
+                                                  self.beta[n, act], shift, DENSITY_FRACTIONS,
+                                                  weights=self.density[n])
         return y
 
     def displacement_from_response(self, y: np.ndarray, dus) -> np.ndarray:
@@ -147,17 +188,19 @@ class FaceModel:
         for e in self.effects:
             y_eff = e.interact(y_eff, D)
         d = np.einsum("snm,nmk->smk", y_eff, D)
+        if self.pairs:
+            d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C)
         k = 0
         for e in self.effects:
-            for basis in e.bases(y):
+            for basis in e.bases(y_eff):  # the path is followed to where the response got
                 d = d + np.einsum("snm,nmk->smk", basis, self.B[rows, :, k])
                 k += 1
         for e in self.effects:
             d = e.output(d)
         return d
 
-    def predict_tables(self, tables, dus, trial) -> np.ndarray:
-        return self.displacement_from_response(self.response(tables, dus, trial), dus)
+    def predict_tables(self, tables, dus, trial, take_shift=None) -> np.ndarray:
+        return self.displacement_from_response(self.response(tables, dus, trial, take_shift), dus)
 
     def predict(self, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
         """Marker positions (n_frames, M, 3) mm for a command schedule (FORMAT.md rows).
@@ -177,12 +220,69 @@ class FaceModel:
         for e in self.effects:
             cls = type(e)
             if cls.name == "hysteresis":
-                out[cls.parameter] = float(np.median(2.0 * self.r[self.active]))
+                out[cls.parameter] = float(np.median(self.loop_width()[self.active]))
+            elif cls.name == "coupling" and self.pairs:
+                out[cls.parameter] = float(self.info.get("coupling_kappa", pair_kappa(self)))
             elif cls.name == "curvature":
                 out[cls.parameter] = bow_ratio(self)
             else:
                 out[cls.parameter] = float(e.describe()["value"])
         return out
+
+
+def pair_features(y: np.ndarray, dus, pairs) -> tuple[list[int], np.ndarray]:
+    """The pairwise interaction features y_n y_n' (S, P_take, M) of a take's DUs ``dus`` for the
+    model's ``pairs`` present in the take, and their indices into ``pairs``."""
+    pos = {d: i for i, d in enumerate(dus)}
+    idx = [k for k, (a, b) in enumerate(pairs) if a in pos and b in pos]
+    if not idx:
+        return [], np.zeros((y.shape[0], 0, y.shape[2]))
+    F = np.stack([y[:, pos[pairs[k][0]]] * y[:, pos[pairs[k][1]]] for k in idx], axis=1)
+    return idx, F
+
+
+def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray) -> np.ndarray:
+    """Sum over the take's DU pairs of y_n y_n' C_pair,m (S, M, 3) mm; y (S, n_dus, M)."""
+    idx, F = pair_features(y, dus, pairs)
+    if not idx:
+        return np.zeros((y.shape[0], y.shape[2], 3))
+    return np.einsum("spm,pmk->smk", F, C[idx])
+
+
+def pair_kappa(model: FaceModel) -> float:
+    """The coupling's kappa read from the fitted pair vectors: the fraction of a DU's displacement
+    lost while another DU is at full command, at the markers most in the other DU's field.
+
+    Per pair and marker, C_m = -(a_m D_nm + b_m D_n'm) by least squares gives the fractions lost
+    by each DU; two laws are fitted to them, weighted by |D|^2: a_m = kappa o_n'm (the loss
+    grows with the other DU's relative pull o = |D_n'm| / max_m |D_n'm|) and a_m = kappa (the
+    same at every marker); the better fit's kappa is returned (both laws agree on it where
+    o = 1, the marker most in the other DU's field)."""
+    if not model.pairs or model.C is None:
+        return 0.0
+    mag = np.linalg.norm(model.D, axis=-1)
+    o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+    loss, pull, wt = [], [], []
+    for k, (a, b) in enumerate(model.pairs):
+        i, j = model.du_ids.index(a), model.du_ids.index(b)
+        A = -np.stack([model.D[i], model.D[j]], axis=-1)  # (M, 3, 2)
+        G = np.einsum("mxp,mxq->mpq", A, A)
+        ok = (model.active[i] & model.active[j] & (np.linalg.det(G) >
+                                                   1e-6 * np.einsum("mpp->m", G) ** 2 + 1e-18))
+        if not ok.any():
+            continue
+        f = np.linalg.solve(G[ok], np.einsum("mxp,mx->mp", A[ok], model.C[k, ok])[..., None])[..., 0]
+        loss += [f[:, 0], f[:, 1]]
+        pull += [o[j, ok], o[i, ok]]
+        wt += [mag[i, ok] ** 2, mag[j, ok] ** 2]
+    if not loss:
+        return 0.0
+    a, p, w = np.concatenate(loss), np.concatenate(pull), np.concatenate(wt)
+    k1 = float(np.sum(w * a * p) / max(np.sum(w * p * p), 1e-300))
+    k2 = float(np.sum(w * a) / max(np.sum(w), 1e-300))
+    sse1 = float(np.sum(w * (a - k1 * p) ** 2))
+    sse2 = float(np.sum(w * (a - k2) ** 2))
+    return k1 if sse1 <= sse2 else k2
 
 
 def bow_ratio(model: FaceModel) -> float:

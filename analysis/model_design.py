@@ -55,8 +55,8 @@ import numpy as np
 import pandas as pd
 
 from mocap.analysis.design import PlanTiming
-from mocap.analysis.face_model import FaceModel
-from mocap.analysis.hysteresis_fit import PLAY_FRACTIONS, normalized_logistic
+from mocap.analysis.face_model import DENSITY_FRACTIONS, FaceModel
+from mocap.analysis.hysteresis_fit import normalized_logistic
 from mocap.analysis.plans import PLAN_NAMES
 
 SUBSTEPS = np.array([1.0 / 3.0, 2.0 / 3.0, 1.0])  # points per command step where the cost is read
@@ -176,9 +176,10 @@ def command_times(ref: Reference, step_s: float, fall_start_s: float | None = No
 class DuPlant:
     """One DU of a face model, ready to be stepped.
 
-    markers : (Ma,) indices of the markers it moves.  halfwidths : (Ma, 5) play half-widths,
+    markers : (Ma,) indices of the markers it moves.  halfwidths : (Ma, P) play half-widths,
     command units.  alpha, beta : (Ma,) its logistic (beta with the trial's bias shift).
     tau_s : actuator lag (0: none).  backlash : dead band half-width, command units (0: none).
+    weights : (P,) the plays' weights (the model's PI density; None: equal).
     """
 
     du: int
@@ -188,6 +189,7 @@ class DuPlant:
     beta: np.ndarray
     tau_s: float
     backlash: float
+    weights: np.ndarray | None = None
 
 
 @dataclass
@@ -211,10 +213,12 @@ def plants(model: FaceModel, dus, trial: int = 1) -> list[DuPlant]:
     for du in dus:
         n = model.du_ids.index(du)
         act = np.flatnonzero(model.active[n])
-        out.append(DuPlant(int(du), act, model.r[n, act, None] * PLAY_FRACTIONS[None],
+        q = model.density[n]
+        keep = q > 1e-6  # plays of weight 0 need no state
+        out.append(DuPlant(int(du), act, model.r[n, act, None] * DENSITY_FRACTIONS[None, keep],
                            model.alpha[n, act], model.beta[n, act] + shift,
                            float(lag.value) if lag is not None else 0.0,
-                           float(bl.value) if bl is not None else 0.0))
+                           float(bl.value) if bl is not None else 0.0, q[keep] / q[keep].sum()))
     return out
 
 
@@ -261,7 +265,9 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
             a = np.broadcast_to(ch[:, None], (C, s.size))
         b = np.clip(b0[:, None], a - p.backlash, a + p.backlash) if p.backlash > 0 else a
         plays = np.clip(pl0[:, None], b[..., None, None] - hw[:, None], b[..., None, None] + hw[:, None])
-        ys.append(normalized_logistic(plays[:, :J].mean(axis=-1), p.alpha, p.beta))  # (C, J, Ma)
+        w = (plays[:, :J].mean(axis=-1) if p.weights is None
+             else np.einsum("cjmp,p->cjm", plays[:, :J], p.weights))
+        ys.append(normalized_logistic(w, p.alpha, p.beta))  # (C, J, Ma)
         a0, b0, pl0 = a[:, -1].copy(), b[:, -1].copy(), plays[:, -1]
         if h == 0:
             first = (a0, b0, pl0)

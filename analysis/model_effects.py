@@ -58,6 +58,7 @@ class Effect:
     per_curve: ClassVar[bool] = False
     frees_r: ClassVar[bool] = False
     n_bases: ClassVar[int] = 0  # extra path bases per curve
+    pairwise: ClassVar[bool] = False  # adds a 3D vector per DU pair and marker (y_n y_n' terms)
     fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
     min_plausible: ClassVar[float] = 0.0  # |value| below this is no effect at all
     affects_curves: ClassVar[bool] = True  # False: single-DU takes do not depend on the value,
@@ -182,7 +183,8 @@ class Backlash(Effect):
     order: ClassVar[int] = 2
     grid: ClassVar[tuple[float, ...]] = (0.0, 3.0, 7.0, 12.0, 18.0, 26.0)
     bounds: ClassVar[tuple[float, float]] = (0.0, 50.0)
-    min_plausible: ClassVar[float] = 1.0
+    # a dead band of a few units is what a branch shape the base cannot follow looks like
+    min_plausible: ClassVar[float] = 3.0
 
     def actuator(self, a, t, sampler):
         if self.value <= 0:
@@ -202,19 +204,27 @@ class Coupling(Effect):
     name: ClassVar[str] = "coupling"
     parameter: ClassVar[str] = "kappa"
     unit: ClassVar[str] = ""
-    meaning: ClassVar[str] = ("DUs share skin: y_n -> y_n (1 - kappa sum_other y_n' o_n'm), o the "
-                              "other DU's relative pull at the marker")
+    meaning: ClassVar[str] = ("DUs share skin: each marker moves by y_n y_n' C_nn'm more than the sum "
+                              "of the DUs' motions (C a 3D vector per DU pair and marker, fitted on "
+                              "takes driving several DUs); kappa reads C as the law y_n -> y_n (1 - "
+                              "kappa sum_other y_n' o_n'm), o the other DU's relative pull")
     stage: ClassVar[str] = "interact"
     affects_curves: ClassVar[bool] = False
+    per_curve: ClassVar[bool] = True
+    pairwise: ClassVar[bool] = True
     grid: ClassVar[tuple[float, ...]] = (-0.3, 0.0, 0.2, 0.4, 0.7)
     bounds: ClassVar[tuple[float, float]] = (-1.0, 1.0)
     min_plausible: ClassVar[float] = 0.02
+
+    uniform: bool = False  # the scalar law's loss the same at every marker (o = 1)
 
     def interact(self, y, D):
         if self.value == 0 or y.shape[1] < 2:
             return y
         mag = np.linalg.norm(D, axis=-1)  # (N, M)
         o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+        if self.uniform:
+            o = np.ones_like(o)
         yo = y * o[None]
         others = yo.sum(axis=1, keepdims=True) - yo
         return y * (1.0 - self.value * others)
@@ -282,28 +292,60 @@ class Saturation(Effect):
         return out
 
 
+SQ3 = 6.0 * np.sqrt(3.0)  # scales y (1 - y) (1 - 2 y) to a peak of 1
+
+
 @dataclass(frozen=True)
 class Curvature(Effect):
+    """Each marker's own path: d = y D + sum_k b_k(y) B_k, b_k = 4 y (1 - y) (the mid-range bow),
+    6 sqrt(3) y (1 - y) (1 - 2 y) (an S bend) and 16 y^2 (1 - y)^2; with D any quartic curve
+    through the rest position in y, so a path that bows, ends off the chord, or whose speed
+    along it is not the logistic's (a per-DU compression of the displacement) is held.
+    Part of the base model: the path shape is reported (|B_1| / |D|, the paper's linearity
+    measures it), not named as a missing effect."""
+
     name: ClassVar[str] = "curvature"
     parameter: ClassVar[str] = "kappa"
     unit: ClassVar[str] = ""
-    meaning: ClassVar[str] = ("marker paths bow sideways: d = y D + 4 y (1 - y) B, |B| / |D| the "
-                              "bow at mid-range")
+    meaning: ClassVar[str] = ("each marker's path from the data: d = y D + sum_k b_k(y) B_k (quartic "
+                              "in y through rest); |B_1| / |D| the mid-range bow")
     stage: ClassVar[str] = "path"
     per_curve: ClassVar[bool] = True
-    n_bases: ClassVar[int] = 1
+    n_bases: ClassVar[int] = 3
     min_plausible: ClassVar[float] = 0.02  # median bow / displacement
 
     def bases(self, y):
-        return [4.0 * y * (1.0 - y)]
+        u = y * (1.0 - y)
+        return [4.0 * u, SQ3 * u * (1.0 - 2.0 * y), 16.0 * u * u]
 
     def bases_derivative(self, y):
-        return [4.0 - 8.0 * y]
+        return [4.0 - 8.0 * y, SQ3 * (1.0 - 6.0 * y + 6.0 * y * y),
+                32.0 * y * (1.0 - y) * (1.0 - 2.0 * y)]
+
+
+@dataclass(frozen=True)
+class TakeShift(Effect):
+    """Each take shifts each of its DUs' biases by its own amount (the face is not quite the same
+    from one take to the next: temperature, settling, re-seating; random, not a trend). Part of
+    the base model, a nuisance parameter per (take, DU): identified on the take itself, also on a
+    held-out take (its prediction is conditional on the take's bias). A drift is a trend of these
+    shifts over the trial number."""
+
+    name: ClassVar[str] = "takeshift"
+    parameter: ClassVar[str] = "shift_sd"
+    unit: ClassVar[str] = "command units"
+    meaning: ClassVar[str] = ("each take shifts each DU's bias by its own amount (take-to-take "
+                              "variation of the face)")
+    stage: ClassVar[str] = "static"
+    per_curve: ClassVar[bool] = True
 
 
 CATALOGUE: dict[str, type[Effect]] = {
-    cls.name: cls for cls in (Hysteresis, Lag, DeadTime, Backlash, Coupling, Drift, Saturation, Curvature)
+    cls.name: cls for cls in (Hysteresis, Lag, DeadTime, Backlash, Coupling, Drift, Saturation, Curvature,
+                              TakeShift)
 }
+BASE = ("hysteresis", "curvature", "takeshift")  # what every face has: the base model
+CANDIDATES = ("lag", "deadtime", "backlash", "coupling", "drift", "saturation")
 
 
 def summarize_schedules(rows_list, fps: float) -> ScheduleSummary:

@@ -17,23 +17,25 @@ is piecewise constant at that scale).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
 from mocap.analysis.face_model import (
+    DENSITY_FRACTIONS,
+    EQUAL_DENSITY,
     OVERSAMPLE,
-    PLAY_FRACTIONS,
     R_MAX,
     FaceModel,
     actuator_effects,
     n_bases,
+    pair_features,
     take_tables,
 )
 from mocap.analysis.model_effects import Effect
-from mocap.analysis.play_kernel import pi_logistic_from_table
+from mocap.analysis.play_kernel import H_STEP, pi_logistic_from_table
 
 BETA_STARTS = (60.0, 128.0, 196.0)
 
@@ -121,15 +123,22 @@ class ModelData:
 @dataclass
 class _Block:
     """Stacked single-DU training samples of one DU: table P (S, H), bias shift (S,),
-    transformed observations v (S, M_n, 3), weights wt (S, M_n)."""
+    transformed observations v (S, M_n, 3), weights wt (S, M_n), the PI density q (F,) and each
+    sample's trial (S,)."""
 
     P: np.ndarray
     shift: np.ndarray
     v: np.ndarray
     wt: np.ndarray
+    q: np.ndarray | None = None
+    trial: np.ndarray | None = None
+
+    def sub(self, cols) -> "_Block":
+        return _Block(self.P, self.shift, self.v[:, cols], self.wt[:, cols], self.q, self.trial)
 
 
-def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray) -> _Block | None:
+def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray,
+           take_shifts: dict | None = None) -> _Block | None:
     ks = [k for k in takes if data.takes[k].dus == (du,)]
     if not ks:
         return None
@@ -153,17 +162,21 @@ def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray) -> _Bl
         data._blocks[key] = (np.concatenate(V), np.concatenate(W))
     v, wt = data._blocks[key]
     P = np.concatenate([data.tables(k, effects)[0] for k in ks])
+    ts = take_shifts or {}
     shift = np.concatenate([np.full(data.observed(k).shape[0],
                                     float(np.asarray(sum((e.beta_shift(data.takes[k].trial)
-                                                          for e in effects), 0.0))))
+                                                          for e in effects), 0.0)))
+                                    + ts.get(data.takes[k].name, {}).get(du, 0.0))
                             for k in ks])
-    return _Block(P, shift, v, wt)
+    trial = np.concatenate([np.full(data.observed(k).shape[0], data.takes[k].trial) for k in ks])
+    return _Block(P, shift, v, wt, EQUAL_DENSITY, trial)
 
 
 def _responses(blk: _Block, p: np.ndarray, hyst: bool, derivatives: bool = False):
     """y (S, M) and, with ``derivatives``, dy/d(alpha, beta[, r]) (S, M, P), analytically."""
     r = p[:, 2] if hyst else np.zeros(p.shape[0])
-    out = pi_logistic_from_table(blk.P, r, p[:, 0], p[:, 1], blk.shift, PLAY_FRACTIONS, derivatives)
+    out = pi_logistic_from_table(blk.P, r, p[:, 0], p[:, 1], blk.shift, DENSITY_FRACTIONS,
+                                 derivatives, weights=blk.q)
     if not derivatives:
         return out
     y, dy = out
@@ -249,30 +262,68 @@ def empty_model(data: ModelData, effects) -> FaceModel:
 
 def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
                iters: int = 30) -> FaceModel:
-    """Fit every DU's curves on the single-DU takes among ``takes`` (indices into data.takes).
+    """Fit the model's per-DU and per-curve parts on ``takes`` (indices into data.takes).
 
-    Strong curves (``data.strong``) get their own sigmoid by Levenberg-Marquardt: without
-    ``warm`` from three biases (:data:`BETA_STARTS`), keeping the best; with it, from the warm
-    model's curves. A marker a DU barely moves does not determine a sigmoid (its fit can trade a
-    tiny response for a huge D): it takes the median shape (alpha, beta, r) of the DU's strong
-    curves and only its displacement vectors are fitted (linear, well conditioned).
+    Curves (alpha, beta[, r], D, B) on the single-DU takes (:func:`_fit_all_curves`); with
+    ``hysteresis``, each DU's PI density over :data:`DENSITY_FRACTIONS` (non-negative, summing to
+    1) by projected Gauss-Newton steps; with ``takeshift``, each take's bias shift per DU
+    (:func:`conditional_shifts`, centred per DU into the biases); these alternate with the
+    curves (three rounds from cold, two from a warm start with ``iters`` >= 30; one round, the
+    density and shifts kept from ``warm``, inside profiles). With a pairwise effect
+    (``coupling``), the vectors C of every DU pair driven together in ``takes`` are fitted last
+    by linear least squares on those takes.
     """
     effects = tuple(effects)
+    hyst = any(type(e).frees_r for e in effects)
+    shifting = any(type(e).name == "takeshift" for e in effects)
+    density = None
+    shifts: dict = {}
+    if warm is not None:
+        density = warm.density.copy()
+        if shifting:
+            shifts = dict(warm.take_shifts)
+    rounds = 1
+    if hyst or shifting:
+        rounds = 3 if warm is None else (2 if iters >= 30 else 1)
+    model = None
+    for rnd in range(rounds):
+        model = _fit_all_curves(data, effects, takes, model if rnd else warm, iters, density, shifts)
+        if rnd == rounds - 1:
+            break
+        if hyst:
+            density = _update_density(data, model, takes)
+            model.density = density
+        if shifting:
+            shifts = _update_shifts(data, model, takes)
+            model.take_shifts = shifts
+    if any(type(e).pairwise for e in effects):
+        _fit_pairs(data, model, takes)
+    return model
+
+
+def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, iters: int,
+                    density: np.ndarray | None, shifts: dict) -> FaceModel:
+    """Every DU's curves, the density (N, F) given (None: equal plays) and the take shifts
+    ({take name: {DU: shift}}) held; see :func:`fit_curves`."""
     model = empty_model(data, effects)
+    model.take_shifts = dict(shifts)
+    if density is not None:
+        model.density = density.copy()
     hyst = model.hysteresis
     K = n_bases(effects)
     for n, du in enumerate(data.du_ids):
         act = np.flatnonzero(data.active[n])
         if act.size == 0:
             continue
-        blk = _block(data, du, takes, effects, act)
+        blk = _block(data, du, takes, effects, act, shifts)
         if blk is None:
             model.active[n] = False
             continue
+        blk.q = model.density[n]
         strong = data.strong[n, act]
         if not strong.any():
             strong = np.ones(act.size, bool)
-        sb = _Block(blk.P, blk.shift, blk.v[:, strong], blk.wt[:, strong])
+        sb = blk.sub(strong)
         ns = int(strong.sum())
         if warm is not None:
             sa = act[strong]
@@ -285,7 +336,8 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
             starts = len(BETA_STARTS)
             p0 = np.column_stack([np.full(ns * starts, 0.03), np.repeat(BETA_STARTS, ns),
                                   np.full(ns * starts, 8.0 if hyst else 0.0)])
-            tiled = _Block(sb.P, sb.shift, np.tile(sb.v, (1, starts, 1)), np.tile(sb.wt, (1, starts)))
+            tiled = _Block(sb.P, sb.shift, np.tile(sb.v, (1, starts, 1)), np.tile(sb.wt, (1, starts)),
+                           sb.q, sb.trial)
             p_all, coef_all, cost_all = _lm_curves(tiled, p0, effects, hyst, iters)
             best = np.argmin(cost_all.reshape(starts, ns), axis=0)
             pick = best * ns + np.arange(ns)
@@ -296,7 +348,7 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
         weak = ~strong
         if weak.any():
             p[weak] = np.median(ps, axis=0)
-            wb = _Block(blk.P, blk.shift, blk.v[:, weak], blk.wt[:, weak])
+            wb = blk.sub(weak)
             coef[weak] = _project(wb, _responses(wb, p[weak], hyst), effects, wb.v, wb.wt)[0]
         model.alpha[n, act], model.beta[n, act] = p[:, 0], p[:, 1]
         model.r[n, act] = p[:, 2] if hyst else 0.0
@@ -306,6 +358,209 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
     return model
 
 
+def _du_parts(data: ModelData, model: FaceModel, takes, n: int, du: int):
+    """A DU's strong curves' block, parameters (Ms, 3), coefficients and derivative factor:
+    (blk, p, y, dy (S, Ms, 3), g = d pred / d y (S, Ms, 3), residual (S, Ms, 3)); None when the
+    DU has no single-DU takes."""
+    act = np.flatnonzero(model.active[n] & data.strong[n])
+    if act.size == 0:
+        act = np.flatnonzero(model.active[n])
+    if act.size == 0:
+        return None
+    blk = _block(data, du, takes, model.effects, act, model.take_shifts)
+    if blk is None:
+        return None
+    blk.q = model.density[n]
+    p = np.column_stack([model.alpha[n, act], model.beta[n, act], model.r[n, act]])
+    y, dy = _responses(blk, p, True, derivatives=True)
+    coef = np.concatenate([model.D[n, act][:, None], model.B[n, act]], axis=1)  # (Ms, K+1, 3)
+    g = np.broadcast_to(coef[None, :, 0, :], blk.v.shape)
+    pred = y[..., None] * coef[None, :, 0, :]
+    kk = 1
+    for ef in model.effects:
+        for basis, db in zip(ef.bases(y), ef.bases_derivative(y)):
+            g = g + db[..., None] * coef[None, :, kk, :]
+            pred = pred + basis[..., None] * coef[None, :, kk, :]
+            kk += 1
+    return blk, p, act, y, dy, g, blk.v - pred
+
+
+def _update_density(data: ModelData, model: FaceModel, takes) -> np.ndarray:
+    """One projected Gauss-Newton step of each DU's PI density q (F,) (q >= 0, sum 1), with a
+    halving line search on the training cost; the curves held."""
+    from scipy.optimize import nnls
+
+    out = model.density.copy()
+    fr = DENSITY_FRACTIONS
+    for n, du in enumerate(data.du_ids):
+        parts = _du_parts(data, model, takes, n, du)
+        if parts is None:
+            continue
+        blk, p, act, y, dy, g, e = parts
+        H = blk.P.shape[1]
+        x = np.clip(fr[:, None] * p[None, :, 2] / H_STEP, 0.0, H - 1 - 1e-9)  # (F, Ms)
+        i0 = np.floor(x).astype(np.int64)
+        lam = x - i0
+        Q = blk.P[:, i0] * (1 - lam) + blk.P[:, np.minimum(i0 + 1, H - 1)] * lam  # (S, F, Ms)
+        q = model.density[n]
+        w = np.einsum("sfm,f->sm", Q, q)
+        al = p[None, :, 0]
+        bb = p[None, :, 1] + blk.shift[:, None]
+        sg = 1.0 / (1.0 + np.exp(np.clip(-al * (w - bb), -700, 700)))
+        lo = 1.0 / (1.0 + np.exp(np.clip(al * bb, -700, 700)))
+        hi = 1.0 / (1.0 + np.exp(np.clip(-al * (255.0 - bb), -700, 700)))
+        dydw = al * sg * (1.0 - sg) / np.maximum(hi - lo, 1e-12)  # (S, Ms)
+        gg = np.einsum("smx,smx->sm", g, g)
+        ge = np.einsum("smx,smx->sm", g, e)
+        A = np.einsum("sfm,sgm->fg", Q * (dydw ** 2 * blk.wt * gg)[:, None], Q)
+        b = np.einsum("sfm,sm->f", Q, dydw * blk.wt * ge)
+        z = A @ q + b
+        scale = np.trace(A) / A.shape[0] + 1e-300
+        R = np.linalg.cholesky(A + 1e-8 * scale * np.eye(A.shape[0]))
+        rhs = np.linalg.solve(R, z)  # min |R^T q - rhs|^2 = q^T A q - 2 z^T q + const
+        big = 1e3 * np.sqrt(scale)
+        q_new, _ = nnls(np.vstack([R.T, big * np.ones((1, fr.size))]), np.append(rhs, big))
+        q_new = q_new / max(q_new.sum(), 1e-12)
+        cost0 = _du_cost(blk, p, model, n, act, q)
+        for _ in range(5):
+            if _du_cost(blk, p, model, n, act, q_new) < cost0:
+                out[n] = q_new
+                break
+            q_new = 0.5 * (q + q_new)
+    return out
+
+
+def _du_cost(blk: _Block, p, model: FaceModel, n: int, act, q) -> float:
+    b = _Block(blk.P, blk.shift, blk.v, blk.wt, q, blk.trial)
+    y = _responses(b, p, True)
+    return float(np.sum(_project(b, y, model.effects, b.v, b.wt)[2]))
+
+
+def _update_shifts(data: ModelData, model: FaceModel, takes) -> dict:
+    """Each training take's bias shift per DU (:func:`conditional_shifts`), centred per DU over
+    its single-DU takes with the centre moved into the DU's biases (the same predictions)."""
+    out = {data.takes[k].name: conditional_shifts(data, model, k) for k in takes}
+    for n, du in enumerate(data.du_ids):
+        v = [out[data.takes[k].name][du] for k in takes if data.takes[k].dus == (du,)]
+        if not v:
+            continue
+        c = float(np.median(v))
+        model.beta[n] += c
+        for sh in out.values():
+            if du in sh:
+                sh[du] -= c
+    return out
+
+
+def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2,
+                       step: float = 0.5, limit: float = 30.0) -> dict:
+    """The bias shift per DU {DU: command units} that best fits take k's own measurement, the
+    rest of the model held: Gauss-Newton from the model's stored shift (or 0), finite
+    differences of ``step``; bounded to +-``limit``. Takes of DUs the model does not know: {}."""
+    t = data.takes[k]
+    dus = [d for d in t.dus if d in model.du_ids]
+    if not dus:
+        return {}
+    tables = data.tables(k, model.effects)
+    obs = data.observed(k)
+    ok = np.isfinite(obs).all(axis=-1) & data.used[None]
+    s = np.array([model.take_shifts.get(t.name, {}).get(d, 0.0) if d in t.dus else 0.0
+                  for d in t.dus], float)
+    for _ in range(iters):
+        pred = model.predict_tables(tables, list(t.dus), t.trial, s)
+        e = np.where(ok[..., None], obs - pred, 0.0)
+        J = []
+        for j in range(len(t.dus)):
+            sj = s.copy()
+            sj[j] += step
+            J.append(np.where(ok[..., None], model.predict_tables(tables, list(t.dus), t.trial, sj)
+                              - pred, 0.0).ravel() / step)
+        J = np.stack(J, axis=0)  # (n, S * M * 3); einsum: no BLAS threads for tiny products
+        JtJ = np.einsum("ij,kj->ik", J, J)
+        if not np.all(np.isfinite(JtJ)) or np.trace(JtJ) <= 0:
+            break
+        ds = np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(len(s)), np.einsum("ij,j->i", J, e.ravel()))
+        s = np.clip(s + ds, -limit, limit)
+    return {int(d): float(v) for d, v in zip(t.dus, s)}
+
+
+def _fit_pairs(data: ModelData, model: FaceModel, takes) -> None:
+    """Fit the pair vectors C (P, M, 3) of ``model`` in place on the multi-DU takes among
+    ``takes``: per marker, linear least squares of the residual on y_n y_n' of each pair."""
+    multi = [k for k in takes if len(data.takes[k].dus) >= 2]
+    pairs = sorted({(a, b) for k in multi for i, a in enumerate(data.takes[k].dus)
+                    for b in data.takes[k].dus[i + 1:] if a in data.du_ids and b in data.du_ids})
+    M = len(data.marker_names)
+    model.pairs = tuple(pairs)
+    model.C = np.zeros((len(pairs), M, 3))
+    if not pairs:
+        return
+    P = len(pairs)
+    G = np.zeros((M, P, P))
+    bvec = np.zeros((M, P, 3))
+    for k in multi:
+        t = data.takes[k]
+        sh = model.take_shifts.get(t.name, {})
+        y = model.response(data.tables(k, model.effects), list(t.dus), t.trial,
+                           np.array([sh.get(d, 0.0) for d in t.dus]))
+        idx, F = pair_features(y, list(t.dus), model.pairs)
+        if not idx:
+            continue
+        e = data.observed(k) - model.displacement_from_response(y, list(t.dus))
+        ok = np.isfinite(e).all(axis=-1)  # (S, M)
+        e = np.where(ok[..., None], e, 0.0)
+        Fw = F * ok[:, None, :]
+        ii = np.array(idx)
+        G[:, ii[:, None], ii[None, :]] += np.einsum("spm,sqm->mpq", Fw, F)
+        bvec[:, ii] += np.einsum("spm,smx->mpx", Fw, e)
+    ridge = 1e-9 * np.maximum(np.einsum("mpp->m", G), 1e-12)[:, None, None] * np.eye(P)
+    seen = np.einsum("mpp->mp", G) > 0
+    C = np.linalg.solve(G + ridge + np.eye(P) * (~seen)[:, :, None], bvec)  # (M, P, 3)
+    model.C = np.transpose(np.where(seen[..., None], C, 0.0), (1, 0, 2)) * model.active.any(axis=0)[None, :, None]
+    model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
+
+
+def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
+    """The coupling's kappa: the fraction of a DU's response lost while another DU is at full
+    command, at the markers most in the other DU's field. The pair vectors C are not unique when
+    takes drive three DUs with one time course, so kappa is read by refitting the multi-DU takes
+    ``multi`` with a scalar law instead of C, y_n -> y_n (1 - kappa sum_other y_n' o_n'm), with
+    o the other DU's relative pull (|D_n'm| / max_m |D_n'm|) or o = 1 (the same loss at every
+    marker); the law that fits better gives kappa (both agree where o = 1). Grid then parabola."""
+    from mocap.analysis.model_effects import Coupling
+
+    plain = replace(model, pairs=(), C=None, info={})
+    plain.__post_init__()
+    pre = []
+    for k in multi:
+        t = data.takes[k]
+        sh = model.take_shifts.get(t.name, {})
+        shift = np.array([sh.get(d, 0.0) for d in t.dus])
+        y = plain.response(data.tables(k, plain.effects), list(t.dus), t.trial, shift)
+        obs = data.observed(k)
+        ok = np.isfinite(obs).all(axis=-1) & data.used[None]
+        pre.append((y, list(t.dus), np.where(ok[..., None], obs, 0.0), ok))
+    if not pre:
+        return 0.0
+    grid = np.round(np.arange(-0.3, 1.2001, 0.05), 6)
+    best = (np.inf, 0.0)
+
+    def cost(v: float, uniform: bool) -> float:
+        law = replace(plain, effects=plain.effects + (Coupling(float(v), uniform),))
+        return sum(float(np.sum(np.where(ok[..., None], obs - law.displacement_from_response(y, dus),
+                                         0.0) ** 2)) for y, dus, obs, ok in pre)
+
+    for uniform in (False, True):
+        c = np.array([cost(v, uniform) for v in grid])
+        i = int(np.clip(np.argmin(c), 1, grid.size - 2))
+        a, b, _ = np.polyfit(grid[i - 1:i + 2], c[i - 1:i + 2], 2)
+        v = float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
+        cv = cost(v, uniform)
+        if cv < best[0]:
+            best = (cv, v)
+    return best[1]
+
+
 # ----------------------------------------------------------------------------------------------
 # scoring
 
@@ -313,7 +568,11 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
 def take_residual(data: ModelData, model: FaceModel, k: int) -> np.ndarray:
     """Measured minus predicted displacement (S, M, 3) mm of take k (NaN where missing)."""
     t = data.takes[k]
-    pred = model.predict_tables(data.tables(k, model.effects), list(t.dus), t.trial)
+    shift = None
+    if model.shifts_takes:
+        sh = conditional_shifts(data, model, k)
+        shift = np.array([sh.get(d, 0.0) for d in t.dus])
+    pred = model.predict_tables(data.tables(k, model.effects), list(t.dus), t.trial, shift)
     return data.observed(k) - pred
 
 
@@ -384,6 +643,31 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     s_best, m_best = cache[best_key]
     if fixed is None:  # final polish of the curves at the chosen value
         m_best = fit_curves(data, m_best.effects, takes, warm=m_best, iters=30)
+    if fixed is None and refine and cls.stage == "actuator" and m_best.hysteresis:
+        # the hysteresis density was fitted without this effect and absorbed part of it (a lag
+        # widens the loops): profile again around the best value from the polished model
+        span = 0.5 * (grid[min(i + 1, len(grid) - 1)] - grid[max(i - 1, 0)])
+        warm2 = m_best
+        cache2: dict[float, tuple[float, FaceModel]] = {}
+
+        def evaluate2(v: float) -> float:
+            v = float(np.clip(v, *cls.bounds))
+            key = round(v, 9)
+            if key not in cache2:
+                m = fit_curves(data, others + (cls(v),), takes, warm=warm2, iters=5)
+                cache2[key] = (sse(data, m, takes)[0], m)
+            return cache2[key][0]
+
+        if span > 0:
+            evaluate2(best_key)
+            minimize_scalar(evaluate2, bounds=(max(best_key - span, cls.bounds[0]),
+                                               min(best_key + span, cls.bounds[1])),
+                            method="bounded", options={"xatol": span * 0.02, "maxiter": 6})
+            key2 = min(cache2, key=lambda k: cache2[k][0])
+            if key2 != round(best_key, 9):
+                best_key = key2
+                m_best = fit_curves(data, cache2[key2][1].effects, takes, warm=cache2[key2][1],
+                                    iters=30)
     keys = sorted(cache)
     # sampled data: a delay is resolved to the fine time grid at best
     resolution = 1.0 / (data.fps * OVERSAMPLE) if cls.fine_grid else 0.0

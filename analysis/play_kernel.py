@@ -58,7 +58,7 @@ def play_table(a: np.ndarray, keep_every: int = 1, halfwidths: np.ndarray = HALF
 
 
 @njit(cache=True)
-def _pi_logistic(P, i0, lam, fr, h_step, alpha, beta, shift, want, y, dy):
+def _pi_logistic(P, i0, lam, fr, wf, h_step, alpha, beta, shift, want, y, dy):
     S, H = P.shape
     nf, M = i0.shape
     for s in range(S):
@@ -69,10 +69,8 @@ def _pi_logistic(P, i0, lam, fr, h_step, alpha, beta, shift, want, y, dy):
                 j = i0[f, m]
                 a0 = P[s, j]
                 a1 = P[s, j + 1] if j + 1 < H else a0
-                w += a0 + lam[f, m] * (a1 - a0)
-                dw += fr[f] * (a1 - a0) / h_step
-            w /= nf
-            dw /= nf
+                w += wf[f] * (a0 + lam[f, m] * (a1 - a0))
+                dw += wf[f] * fr[f] * (a1 - a0) / h_step
             al = alpha[m]
             b = beta[m] + shift[s]
             zs = -al * (w - b)
@@ -101,12 +99,13 @@ def _pi_logistic(P, i0, lam, fr, h_step, alpha, beta, shift, want, y, dy):
 
 def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta: np.ndarray,
                            shift: np.ndarray | None = None, fractions=None,
-                           derivatives: bool = False):
+                           derivatives: bool = False, weights=None):
     """Normalised logistic of the PI operator of width r, read from a play table.
 
     P : (S, H) play table (:func:`play_table`).  r, alpha, beta : (M,) per curve (command units,
     1/command unit, command units).  shift : (S,) bias shift per sample (command units) or None.
-    fractions : play half-widths / r (default the model's 0, .5, 1, 1.5, 2).
+    fractions : (F,) play half-widths / r (default the model's 0, .5, 1, 1.5, 2).
+    weights : (F,) the plays' weights (the PI density; default equal, 1 / F each).
 
     Returns y (S, M) and, with ``derivatives``, dy/d(alpha, beta, r) (S, M, 3).
     """
@@ -121,8 +120,10 @@ def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta
     S, M = P.shape[0], r.size
     y = np.empty((S, M))
     dy = np.empty((S, M, 3)) if derivatives else np.empty((1, 1, 3))
+    wf = (np.full(fr.size, 1.0 / fr.size) if weights is None
+          else np.ascontiguousarray(weights, float))
     sh = np.zeros(S) if shift is None else np.ascontiguousarray(np.broadcast_to(shift, (S,)), float)
-    _pi_logistic(np.ascontiguousarray(P, float), i0, lam, fr, H_STEP,
+    _pi_logistic(np.ascontiguousarray(P, float), i0, lam, fr, wf, H_STEP,
                  np.ascontiguousarray(alpha, float), np.ascontiguousarray(beta, float), sh,
                  derivatives, y, dy)
     return (y, dy) if derivatives else y

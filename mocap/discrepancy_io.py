@@ -68,6 +68,8 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
         "final_model": {"effects": res.final_model.effect_names,
                         "parameters": {k: _r(v, 6) for k, v in res.final_model.parameters().items()}},
         "untestable": res.untestable,
+        "base_report": res.base_report,
+        "alternatives": res.alternatives,
         "final_evidence": evidence(res.final_evidence) if not res.steps or
         res.final_evidence is not res.steps[-1].evidence else [],
         "excluded_markers": res.excluded_markers,
@@ -101,6 +103,20 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
              f"({res.stages[0]['heldout_rms_mm'] / floor:.2f} x noise) with the base model "
              f"({', '.join(res.base_effects) or 'static, no hysteresis'}) -> "
              f"{res.final_heldout_rms_mm:.4f} mm ({res.final_heldout_rms_mm / floor:.2f} x noise).")
+    if res.base_report:
+        b = res.base_report
+        L += ["", "The base model holds what every face has (not missing effects): each marker's "
+              "own path" + (f" (median mid-range bow {b['path_bow']:.3f} of the displacement)"
+                            if "path_bow" in b else "") +
+              ", a Prandtl-Ishlinskii density of play widths" +
+              (" (loop widths per DU: " + ", ".join(f"DU {k}: {v:.1f}" for k, v in
+                                                    b.get("loop_width", {}).items()) + ")"
+               if b.get("loop_width") else "") +
+              (f", a bias shift per take and DU (SD {b['take_shift_sd']:.2f} command units)"
+               if "take_shift_sd" in b else "") + "."]
+    for alt in res.alternatives:
+        L += ["", f"Two explanations fit equally well ({' or '.join(alt['effects'])}), neither "
+              f"named: {alt['reason']}."]
     if res.untestable:
         L += ["", "Effects these takes cannot tell apart (not named, whatever the residuals):"]
         L += [f"- {k}: not testable, {v}" for k, v in res.untestable.items()]
@@ -154,6 +170,9 @@ def _evidence_row(e: dict) -> str:
         return f"| {e['effect']} | | | | | not testable: {e.get('reason', '')} |"
     if e.get("screened_out"):
         return f"| {e['effect']} | | | | | no held-out gain on the first fold |"
+    if "shifts" in e:  # drift, decided from the trend of the takes' bias shifts
+        return (f"| {e['effect']} | | | | slope {e.get('slope', 0):.3g} per trial | "
+                f"{abs(e.get('t', 0)):.1f} standard errors of the takes' scatter |")
     fv = ", ".join(f"{v:.4g}" for v in e.get("fold_values", []))
     note = "" if e.get("plausible", True) else "implausible value"
     return (f"| {e['effect']} | {e['heldout_rms_mm']:.4f} | {e['score']:.1f} | "

@@ -8,11 +8,12 @@ import sys
 from pathlib import Path
 
 DESCRIPTION = """\
-Fit the face model (the paper's sigmoids with Prandtl-Ishlinskii hysteresis, for any command
-series on any DUs) on the session's commanded takes, predict every take held out (two-fold
-cross-validation over takes), localise where the residuals exceed the measurement's own noise
-(per take, DU, marker and phase of the command), try every candidate effect (hysteresis, lag,
-deadtime, backlash, coupling, drift, saturation, curvature), name the one that explains the gap on
+Fit the face model (the paper's sigmoids with a Prandtl-Ishlinskii hysteresis density, each
+marker's own path and a bias shift per take, for any command series on any DUs) on the
+session's commanded takes, predict every take held out (two-fold cross-validation over takes),
+localise where the residuals exceed the measurement's own noise (per take, DU, marker and phase
+of the command), try every candidate effect (lag, deadtime, backlash, coupling, drift,
+saturation; hysteresis and curvature too from a smaller base), name the one that explains the gap on
 held-out takes (BIC margin 10) with its parameter and uncertainty, add it and repeat until nothing
 significant is left. Says which effects the takes cannot test (e.g. coupling without multi-DU
 takes). Writes OUT/discrepancy.json, discrepancy.md, figures/ and discrepancy.rrd (Rerun; open
@@ -34,11 +35,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("path", type=Path, help="session directory or mocap run output directory")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--base", choices=["paper", "static"], default="paper",
-                   help="starting model: the paper's (with hysteresis, default) or static "
-                        "(without: hysteresis becomes a candidate)")
-    p.add_argument("--effects", default=",".join(CATALOGUE),
-                   help="candidate effects, comma-separated (default: all)")
+    p.add_argument("--base", choices=["face", "paper", "static"], default="face",
+                   help="starting model: what every face has (default: a hysteresis density, "
+                        "each marker's own path, a bias shift per take), the paper's (hysteresis, "
+                        "straight paths: curvature becomes a candidate) or static (no hysteresis "
+                        "either)")
+    p.add_argument("--effects", default=None,
+                   help="candidate effects, comma-separated (default: the missing effects, "
+                        f"plus what the base leaves out; known: {', '.join(CATALOGUE)})")
     p.add_argument("--margin", type=float, default=10.0, help="held-out BIC units to name an effect (10)")
     p.add_argument("--max-steps", type=int, default=4, help="effects to add at most (4)")
     p.add_argument("--jobs", type=int, default=None,
@@ -55,13 +59,19 @@ def run(args: argparse.Namespace) -> int:
     from mocap.paths import check_output_path, session_dir_of
     from mocap.session import SessionError
 
-    names = [e.strip() for e in args.effects.split(",") if e.strip()]
+    from mocap.analysis.model_effects import BASE, CANDIDATES
+
+    base = {"face": BASE, "paper": ("hysteresis",), "static": ()}[args.base]
+    if args.effects is None:
+        names = [n for n in BASE if n not in base and n != "takeshift"] + list(CANDIDATES)
+    else:
+        names = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in names if e not in CATALOGUE]
     if bad:
         print(f"error: --effects: unknown {', '.join(bad)} (known: {', '.join(CATALOGUE)})",
               file=sys.stderr)
         return 2
-    settings = DiscrepancySettings(base=("hysteresis",) if args.base == "paper" else (),
+    settings = DiscrepancySettings(base=base,
                                    candidates=tuple(names), margin=args.margin,
                                    max_steps=args.max_steps,
                                    jobs=args.jobs or os.cpu_count() or 1)
