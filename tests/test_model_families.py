@@ -54,10 +54,10 @@ def _session(tmp_path_factory, family, effect, seed=5, n_trials=3, form="alt"):
     return root, truth
 
 
-BRANCH_COUPLING = pytest.mark.xfail(
-    strict=True, reason="known limitation: kappa is defined in the simulator's response units; "
-    "where the model re-parametrises the response and the path (an off-chord path), the scalar "
-    "law refitted to the two-DU takes reads about 0.21 against 0.35 (the coupling is named)")
+BOUCWEN_COUPLING = pytest.mark.xfail(
+    strict=True, reason="known limitation (issue #15): on Bouc-Wen loops with the alt coupling "
+    "law, kappa is read within 20 % and the coupling is named, but the held-out RMS stays at "
+    "about 1.65 x the noise floor (0.096 vs 0.058 mm; the target is 1.5 x)")
 BOUCWEN_LAG = pytest.mark.xfail(
     strict=True, reason="known limitation: on Bouc-Wen loops the PI density absorbs part of a "
     "second-order lag (tau about 0.05 s against 0.08 s); the sweep's table shows it")
@@ -68,8 +68,8 @@ BOUCWEN_LAG = pytest.mark.xfail(
 def test_hidden_effect_is_identified_on_a_foreign_family(tmp_path_factory, family, effect, request):
     if family == "boucwen-bow" and effect == "lag":
         request.applymarker(BOUCWEN_LAG)
-    if family == "branchplay-offchord" and effect == "coupling":
-        request.applymarker(BRANCH_COUPLING)
+    if family == "boucwen-bow" and effect == "coupling":
+        request.applymarker(BOUCWEN_COUPLING)
     root, truth = _session(tmp_path_factory, family, effect)
     prep = _prepared(root)
     data, floor = prep.data, prep.noise_floor_mm

@@ -226,7 +226,8 @@ def test_capture_noise_from_still_frames_ignores_trial_differences():
 
 def run_trials(run_dir, session_dir, du):
     """The run's labeled trials of one DU (K, n, M, 3) mm, its first take's command rows, and the
-    marker names, read from the run's trajectories/ and the session's command files."""
+    marker names, read from the run's trajectories/ (the samples 3 or more cameras saw) and the
+    session's command files."""
     from mocap.session import load_session
 
     session = load_session(session_dir)
@@ -237,7 +238,12 @@ def run_trials(run_dir, session_dir, du):
         df = pd.read_parquet(run_dir / "trajectories" / f"{t.name}.parquet")
         names = list(pd.unique(df["marker"]))
         n = int(df["frame"].max()) + 1
-        trials.append(df[["x", "y", "z"]].to_numpy().reshape(n, len(names), 3))
+        X = df[["x", "y", "z"]].to_numpy().reshape(n, len(names), 3).copy()
+        # the analyses use the samples at least 3 cameras saw (--min-cameras, default 3): the
+        # trajectories also hold 2-view points (n_cameras 2)
+        ncam = df["n_cameras"].to_numpy().reshape(n, len(names))
+        X[(ncam > 0) & (ncam < 3)] = np.nan
+        trials.append(X)
     n = min(x.shape[0] for x in trials)
     rows = session.read_commands(takes[0].name)
     rows = rows[rows["du"] == du]

@@ -199,8 +199,13 @@ def test_killed_run_resumes_to_the_uninterrupted_results(tiny_sim, tiny_run, tmp
     assert f"reusing {finished} of {len(faces)} reconstructed takes" in cap.err
     assert (f"reconstruct ({finished} of {len(faces)} takes)" in reused_line(cap.out))
     same_outputs(out, tiny_run)
-    assert json.loads((out / "summary.json").read_text())["properties"] == \
-        json.loads((tiny_run / "summary.json").read_text())["properties"]
+    # the same numbers to the optimiser's precision (resumed takes come back from Parquet in
+    # another memory layout, so sums run in another order: differences of 1e-16 in, 1e-9 out)
+    resumed = json.loads((out / "summary.json").read_text())["properties"]
+    uninterrupted = json.loads((tiny_run / "summary.json").read_text())["properties"]
+    assert [r["du"] for r in resumed] == [r["du"] for r in uninterrupted]
+    for a, b in zip(resumed, uninterrupted):
+        assert a == pytest.approx(b, rel=1e-6, abs=1e-12), (a, b)
     assert not list(out.rglob(".*.tmp"))  # no half-written file left behind
     assert not (out / ".facemocap" / "lock").exists()  # released
 
