@@ -78,15 +78,20 @@ def write_calibration(
     return write_text(path, dumps(rig, quality, header))
 
 
-def read_calibration(path: str | os.PathLike) -> tuple[CameraRig, dict]:
-    """Read a calibration.toml: ``(rig, quality)``; errors name the file and the camera/key."""
-    path = Path(path)
+def read_toml(path: Path) -> dict:
+    """A TOML file's tables; a missing file or bad TOML is a CalibrationFileError naming it."""
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise CalibrationFileError(f"{path}: file not found") from None
     except tomllib.TOMLDecodeError as e:
         raise CalibrationFileError(f"{path}: not valid TOML ({e})") from None
+
+
+def read_calibration(path: str | os.PathLike) -> tuple[CameraRig, dict]:
+    """Read a calibration.toml: ``(rig, quality)``; errors name the file and the camera/key."""
+    path = Path(path)
+    data = read_toml(path)
     tables = data.get("cameras")
     if not isinstance(tables, list) or not tables:
         raise CalibrationFileError(f"{path}: expected one or more [[cameras]] tables, got none")

@@ -23,13 +23,12 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from mocap.atomic import write_text
-from mocap.calib.calibration_file import CalibrationFileError
+from mocap.calib.calibration_file import CalibrationFileError, read_toml
 from mocap.calib.camera import Camera, CameraRig, rodrigues_from_rotation, rotation_from_rodrigues
 
 UNITS_MM = {"mm": 1.0, "m": 1000.0}
@@ -86,12 +85,7 @@ def read_anipose(path: str | os.PathLike, *, units: str = "mm") -> CameraRig:
     ``units``). Errors name the file and the table."""
     path = Path(path)
     scale = _units(units)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{path}: file not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise CalibrationFileError(f"{path}: not valid TOML ({e})") from None
+    data = read_toml(path)
     keys = sorted((k for k in data if k.startswith("cam_") and isinstance(data[k], dict)),
                   key=lambda k: int(k[4:]) if k[4:].isdigit() else 10**9)
     if not keys:

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from fuzz_inputs import MOTIVE  # the sample Motive export the fuzz tests damage
 from mocap.cli import main
 from mocap.interop.c3d_file import read_c3d, write_c3d
 from mocap.interop.marker_data import ImportError_, MarkerData
@@ -67,17 +68,6 @@ def test_labeled_session_from_c3d_runs(small_run, tmp_path):
     assert main(["validate", str(tmp_path / "sess")]) == 0
 
 
-MOTIVE = """Format Version,1.23,Take Name,face01,Take Notes,,Capture Frame Rate,120.000000,Export Frame Rate,120.000000,Capture Start Time,2026-11-22 10.00.00.000 AM,Total Frames in Take,4,Total Exported Frames,4,Rotation Type,Quaternion,Length Units,Meters,Coordinate Space,Global
-
-,,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Marker,Marker,Marker,Marker,Marker,Marker,Unlabeled Marker,Unlabeled Marker,Unlabeled Marker
-,,Head,Head,Head,Head,Head,Head,Head,Face:M001,Face:M001,Face:M001,Face:M002,Face:M002,Face:M002,Unlabeled 1000,Unlabeled 1000,Unlabeled 1000
-,,1,1,1,1,1,1,1,A1,A1,A1,A2,A2,A2,U1,U1,U1
-,,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Position,Position,Position,Position,Position,Position,Position,Position,Position
-Frame,Time (Seconds),X,Y,Z,W,X,Y,Z,X,Y,Z,X,Y,Z,X,Y,Z
-0,0.000000,0,0,0,1,0.1,0.2,0.3,0.010000,0.200000,0.030000,0.020000,0.210000,0.031000,0.5,0.5,0.5
-1,0.008333,0,0,0,1,0.1,0.2,0.3,0.010100,0.200100,0.030100,,,,0.5,0.5,0.5
-3,0.025000,0,0,0,1,0.1,0.2,0.3,0.010300,0.200300,0.030300,0.020300,0.210300,0.031300,,,
-"""
 
 
 def test_motive_csv(tmp_path):
