@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fuzz_inputs import MOTIVE  # the sample Motive export the fuzz tests damage
+from fuzz_inputs import MOTIVE, QTM  # the sample exports the fuzz tests damage
 from mocap.cli import main
 from mocap.interop.c3d_file import read_c3d, write_c3d
 from mocap.interop.marker_data import ImportError_, MarkerData
@@ -89,14 +89,6 @@ def test_motive_csv_truncated(tmp_path):
     with pytest.raises(ImportError_, match=r"cut.csv line 10: truncated row"):
         read_motive_csv(p)
 
-
-QTM = ("FILE_VERSION\t2.0.0\nNO_OF_FRAMES\t3\nNO_OF_CAMERAS\t6\nNO_OF_MARKERS\t2\nFREQUENCY\t100\n"
-       "NO_OF_ANALOG\t0\nANALOG_FREQUENCY\t0\nDESCRIPTION\t--\nTIME_STAMP\t2026-11-22, 10:00:00\n"
-       "DATA_INCLUDED\t3D\nMARKER_NAMES\tM001\tM002\nTRAJECTORY_TYPES\tMeasured\tMeasured\n"
-       "Frame\tTime\tM001 X\tM001 Y\tM001 Z\tM002 X\tM002 Y\tM002 Z\t\n"
-       "1\t0.000\t1.000\t2.000\t3.000\t4.000\t5.000\t6.000\t\n"
-       "2\t0.010\t1.100\t2.100\t3.100\t\t\t\t\n"
-       "3\t0.020\t1.200\t2.200\t3.200\t0.000\t0.000\t0.000\t\n")
 
 
 def test_qtm_tsv_with_and_without_file_version(tmp_path):
