@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
+import os
 
-import pytest
+# before numpy is imported: one BLAS thread, as the command line runs (mocap.cli.single_threaded_blas)
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_name, "1")
 
-from mocap.simulate import preset, simulate
+import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from mocap.simulate import preset, simulate  # noqa: E402
 
 
 def make_session(root: Path, **overrides) -> Path:

@@ -40,3 +40,15 @@ def test_schedule_writes_the_battery(tmp_path):
     assert rows["command"].between(0, 255).all() and (rows["du"] == 4).all()
     assert "Total" in (tmp_path / "README.md").read_text()
     assert main(["schedule", "--dus", "x", "--out", str(tmp_path)]) == 1
+
+
+def test_one_blas_thread_unless_the_user_chose(monkeypatch):
+    from mocap.cli import single_threaded_blas
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    single_threaded_blas()
+    import os
+
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    assert os.environ["OMP_NUM_THREADS"] == "4"  # the user's choice stays
