@@ -353,6 +353,7 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
     oc, of = problem.obs_cam, problem.obs_frame
     gauge = problem.held()
     x = x0_full.copy()
+    by_camera = [np.flatnonzero(oc == c) for c in range(C)]
 
     def cost_of(r):
         z = np.sum(r**2, axis=-1) / f_scale**2
@@ -367,22 +368,19 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
     for _ in range(max_iter):
         z = np.sum(r**2, axis=-1) / f_scale**2
         w = _loss_weights(z, loss)[1][..., None, None]  # (o, w, 1, 1)
-        Jcw = Jc * w
-        U_o = np.einsum("owai,owaj->oij", Jcw, Jc)
-        V_o = np.einsum("owai,owaj->oij", Jf * w, Jf)
-        W_o = np.einsum("owai,owaj->oij", Jcw, Jf)
-        gc_o = np.einsum("owai,owa->oi", Jcw, r)
-        gf_o = np.einsum("owai,owa->oi", Jf * w, r)
-        U = np.zeros((C, N_CAM, N_CAM))
-        np.add.at(U, oc, U_o)
-        V = np.zeros((F, N_FRAME, N_FRAME))
-        np.add.at(V, of, V_o)
-        gc = np.zeros((C, N_CAM))
-        np.add.at(gc, oc, gc_o)
-        gf = np.zeros((F, N_FRAME))
-        np.add.at(gf, of, gf_o)
+        # per sighting, the (w, a) rows stacked: batched matrix products (einsum's generic
+        # loop was 8 x slower here), then summed per camera and per frame
+        n_obs = r.shape[0]
+        Jc2 = Jc.reshape(n_obs, -1, N_CAM)
+        Jf2 = Jf.reshape(n_obs, -1, N_FRAME)
+        Jcw_T = (Jc * w).reshape(n_obs, -1, N_CAM).transpose(0, 2, 1)
+        Jfw_T = (Jf * w).reshape(n_obs, -1, N_FRAME).transpose(0, 2, 1)
+        r2 = r.reshape(n_obs, -1, 1)
+        U, gc = _camera_normal(Jcw_T, Jc2, r2, by_camera)
+        V = _sum_by(of, Jfw_T @ Jf2, F)
+        gf = _sum_by(of, (Jfw_T @ r2)[..., 0], F)
         Wfull = np.zeros((F, C, N_CAM, N_FRAME))
-        Wfull[of, oc] = W_o
+        Wfull[of, oc] = Jcw_T @ Jf2
         while True:
             Ud = U + lam * np.einsum("cii->ci", U)[..., None] * np.eye(N_CAM)
             Vd = V + lam * np.einsum("fii->fi", V)[..., None] * np.eye(N_FRAME)
@@ -430,6 +428,29 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
     return BundleResult(cams.copy(), frames.copy(), r, cost, nfev, success, message, cov)
 
 
+def _camera_normal(JwT: np.ndarray, J: np.ndarray, r: np.ndarray, by_camera: list[np.ndarray]):
+    """Each camera's block of the normal equations, one matrix product over all its sightings'
+    rows: JwT (o, 13, k) weighted Jacobian transposed, J (o, k, 13), r (o, k, 1) residuals ->
+    U (C, 13, 13), g (C, 13)."""
+    U = np.empty((len(by_camera), N_CAM, N_CAM))
+    g = np.empty((len(by_camera), N_CAM))
+    for c, rows in enumerate(by_camera):
+        A = JwT[rows].transpose(1, 0, 2).reshape(N_CAM, -1)  # (13, n_c k)
+        U[c] = A @ J[rows].reshape(-1, N_CAM)
+        g[c] = A @ r[rows].reshape(-1)
+    return U, g
+
+
+def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[k] = sum of values[i] where index[i] == k``: (m, ...) -> (n, ...), by one
+    bincount over the flattened components (``np.add.at`` is unbuffered and slow)."""
+    flat = values.reshape(len(index), -1)
+    k = flat.shape[1]
+    keys = (index[:, None] * k + np.arange(k)).ravel()
+    out = np.bincount(keys, weights=flat.ravel(), minlength=n * k)
+    return out.reshape((n,) + values.shape[1:])
+
+
 def _schur_product(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
     """sum_f Y[f] W[f]^T over frames, as one matrix product: Y, W (F, C, 13, 5) ->
     (C * 13, C * 13)."""
@@ -443,12 +464,13 @@ def _camera_covariance(problem: WandProblem, Jc, Jf, r, gauge) -> np.ndarray:
     """Covariance of the cameras' free parameters at the solution (see BundleResult)."""
     C, F = problem.n_cameras, problem.n_frames
     oc, of = problem.obs_cam, problem.obs_frame
-    U = np.zeros((C, N_CAM, N_CAM))
-    np.add.at(U, oc, np.einsum("owai,owaj->oij", Jc, Jc))
-    V = np.zeros((F, N_FRAME, N_FRAME))
-    np.add.at(V, of, np.einsum("owai,owaj->oij", Jf, Jf))
+    n_obs = r.shape[0]
+    Jc2 = Jc.reshape(n_obs, -1, N_CAM)
+    Jf2 = Jf.reshape(n_obs, -1, N_FRAME)
+    U = _sum_by(oc, Jc2.transpose(0, 2, 1) @ Jc2, C)
+    V = _sum_by(of, Jf2.transpose(0, 2, 1) @ Jf2, F)
     Wfull = np.zeros((F, C, N_CAM, N_FRAME))
-    Wfull[of, oc] = np.einsum("owai,owaj->oij", Jc, Jf)
+    Wfull[of, oc] = Jc2.transpose(0, 2, 1) @ Jf2
     Vinv = np.linalg.pinv(V)
     Y = Wfull @ Vinv[:, None]
     S = -_schur_product(Y, Wfull)
