@@ -125,3 +125,20 @@ def test_distortion_of_another_shape_is_refused():
     rig = strong_rig(3)
     with pytest.raises(ValueError, match="k1, k2, p1, p2, k3"):
         triangulate_pixels([Eight(c) for c in rig], np.zeros((len(rig), 4, 2)))
+
+
+def test_importing_the_kernels_lets_idle_threads_sleep_unless_the_user_chose():
+    """The parallel kernels' OpenMP threads must not spin on busy cores (module docstring)."""
+    import subprocess
+    import sys
+
+    code = ("import os; import mocap.calib.triangulation_kernel; "
+            "print(os.environ['OMP_WAIT_POLICY'])")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "ACTIVE"
