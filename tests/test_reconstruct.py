@@ -174,3 +174,20 @@ def test_labeled_session_runs(tmp_path):
     df = pd.read_parquet(tmp_path / "out" / "trajectories" / "du04_t01.parquet")
     assert (df["n_cameras"] == 0).all() and df["residual_px"].isna().all()
     assert "calibrate" not in res.summary["stages"]
+
+
+def test_worker_processes_give_the_in_process_result(tiny_sim, monkeypatch):
+    """Takes reconstructed by spawned workers (forced here: the tiny session is below the size
+    where workers pay, ``PARALLEL_MIN_BYTES``) equal the in-process reconstruction."""
+    import mocap
+    import mocap.pipeline as pipeline
+
+    session = mocap.load_session(tiny_sim / "session")
+    calibration = mocap.calibrate(session)
+    serial = mocap.reconstruct(session, calibration, jobs=1)
+    monkeypatch.setattr(pipeline, "PARALLEL_MIN_BYTES", 0)
+    parallel = mocap.reconstruct(session, calibration, jobs=2)
+    assert list(parallel.takes) == list(serial.takes)
+    for name, take in serial.takes.items():
+        np.testing.assert_array_equal(parallel.takes[name].X, take.X, err_msg=name)
+    assert parallel.noise_floor_mm == serial.noise_floor_mm
