@@ -74,11 +74,16 @@ def test_run_without_out_dir_writes_nothing_and_imports_no_heavy_package(tiny_si
     props = pd.read_csv(tiny_run / "properties.csv")
     got = pd.DataFrame(r["properties"])
     assert list(got["du"]) == [4, 7]
+    # equal to the optimiser's precision: this clean process runs BLAS with its default threads
+    # (the test process and the CLI use one), which changes the order of the calibration's and
+    # the fits' sums
     for col in ("sensitivity", "beta_fwd", "beta_bwd", "hysteresis", "dyssynchrony",
                 "linearity_mean"):
-        np.testing.assert_array_equal(got[col].to_numpy(float), props[col].to_numpy(float))
+        np.testing.assert_allclose(got[col].to_numpy(float), props[col].to_numpy(float),
+                                   rtol=1e-7, err_msg=col)
     X = np.array(r["du04_t01"], dtype=float)
-    np.testing.assert_array_equal(X, out_dense(tiny_run, "du04_t01", r["markers"]))
+    np.testing.assert_allclose(X, out_dense(tiny_run, "du04_t01", r["markers"]), rtol=0,
+                               atol=1e-9)  # mm; the calibration's sums differ in the last bits
     faces = sorted(p.stem for p in (tiny_run / "trajectories").glob("*.parquet"))
     assert r["takes"] == faces
     assert r["n_rows"] == sum(len(pd.read_parquet(p)) for p in (tiny_run / "trajectories").glob("*.parquet"))
