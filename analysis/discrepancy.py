@@ -101,18 +101,53 @@ class DiscrepancySettings:
 # data preparation
 
 
+def schedule_class(t: TakeData) -> tuple[int, bool]:
+    """What a take's schedule can reveal, as a sortable key: the median ramp rate of its moving
+    command rows in octaves (log2 of command units/s, rounded) and whether it turns back inside
+    the range (a minor loop)."""
+    rates, inner = [], False
+    for _du, g in t.rows.groupby("du"):
+        g = g.sort_values("time_s", kind="stable")
+        c = g["command"].to_numpy(float)
+        dc = np.diff(c)
+        dt = np.diff(g["time_s"].to_numpy(float))
+        moving = dc != 0
+        if not moving.any():
+            continue
+        rates.append(np.abs(dc[moving]) / np.maximum(dt[moving], 1e-6))
+        s = np.sign(dc[moving])
+        levels = c[1:][moving][np.flatnonzero(s[1:] != s[:-1])]
+        inner |= bool(np.any((levels > 0.05 * 255) & (levels < 0.95 * 255)))
+    octave = int(np.round(np.log2(np.median(np.concatenate(rates))))) if rates else 0
+    return octave, inner
+
+
 def assign_folds(takes: list[TakeData]) -> None:
-    """Two folds: within each DU set, takes ordered by schedule then trial alternate between
-    folds (the parity flips from one DU set to the next), so each fold holds some trials of every
-    repeated schedule and about half of the other schedules."""
+    """Two folds that each see every DU set at as many ramp rates as the session has.
+
+    Within each DU set, the takes fall in three strata by :func:`schedule_class`: ramps at
+    another rate than the set's most common one, schedules with minor loops, and the rest (the
+    reference schedule and its repetitions, multi-DU takes). Ordered by DU set, rate, schedule
+    and trial, each stratum alternates between the folds with its own running count over all
+    DU sets (minor loops starting in the other fold). So each fold holds some trials of every
+    repeated schedule; a DU's fast and slow ramps land in different folds instead of both in
+    one (a fold that sees a DU at one rate cannot tell a lag from a wider hysteresis, and its
+    fit then misleads the other fold's score); and the minor loops of successive DUs alternate,
+    so both folds can test what only reversals inside the range reveal."""
     by_set: dict[tuple, list[int]] = {}
     for i, t in enumerate(takes):
         by_set.setdefault(t.dus, []).append(i)
-    for g, (_, idx) in enumerate(sorted(by_set.items())):
-        order = sorted(idx, key=lambda i: (takes[i].kind != "motion", takes[i].group, takes[i].trial,
-                                           takes[i].name))
-        for j, i in enumerate(order):
-            takes[i].fold = (j + g) % 2
+    seen = {"rate": 0, "minor": 1, "reference": 0}
+    for _, idx in sorted(by_set.items()):
+        cls = {i: schedule_class(takes[i]) for i in idx}
+        octaves, counts = np.unique([cls[i][0] for i in idx], return_counts=True)
+        modal = octaves[np.argmax(counts)]
+        order = sorted(idx, key=lambda i: (takes[i].kind != "motion", cls[i], takes[i].group,
+                                           takes[i].trial, takes[i].name))
+        for i in order:
+            k = "rate" if cls[i][0] != modal else ("minor" if cls[i][1] else "reference")
+            takes[i].fold = seen[k] % 2
+            seen[k] += 1
 
 
 def trial_noise(takes: list[TakeData], markers: np.ndarray | None = None) -> tuple[float, np.ndarray]:
