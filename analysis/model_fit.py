@@ -184,20 +184,20 @@ def _responses(blk: _Block, p: np.ndarray, hyst: bool, derivatives: bool = False
 
 
 def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray):
-    """Variable projection: coefficients (M, K+1, 3), residual (S, M, 3), cost (M,)."""
-    Phi = [y] + [b for e in effects for b in e.bases(y)]
-    k = len(Phi)
-    wPhi = [ph * wt for ph in Phi]
-    G = np.empty((y.shape[1], k, k))
-    for i in range(k):
-        for j in range(i, k):
-            G[:, i, j] = G[:, j, i] = np.einsum("sm,sm->m", wPhi[i], Phi[j])
-    G = G + 1e-9 * np.eye(k)
-    Bm = np.stack([np.einsum("sm,smx->mx", wp, v) for wp in wPhi], axis=1)  # (M, k, 3)
-    coef = np.linalg.solve(G, Bm)
-    e = v - sum(Phi[i][..., None] * coef[None, :, i, :] for i in range(k))
-    cost = np.einsum("smx,smx->m", e * e, np.broadcast_to(wt[..., None], e.shape))
-    return coef, e, cost
+    """Variable projection: coefficients (M, K+1, 3), residual (S, M, 3), cost (M,).
+
+    Per curve m, with the basis A_m = [y, bases(y)] (S, K+1) and weights w: the normal
+    equations (A^T W A + 1e-9 I) c = A^T W v, as batched matrix products over curves."""
+    A = np.stack([y] + [b for e in effects for b in e.bases(y)], axis=-1)  # (S, M, k)
+    k = A.shape[-1]
+    Am = np.ascontiguousarray(A.transpose(1, 0, 2))  # (M, S, k)
+    wAm = Am * wt.T[..., None]
+    G = np.matmul(wAm.transpose(0, 2, 1), Am) + 1e-9 * np.eye(k)  # (M, k, k)
+    vm = np.ascontiguousarray(v.transpose(1, 0, 2))  # (M, S, 3)
+    coef = np.linalg.solve(G, np.matmul(wAm.transpose(0, 2, 1), vm))  # (M, k, 3)
+    em = vm - np.matmul(Am, coef)  # (M, S, 3)
+    cost = np.einsum("msx,ms->m", em * em, wt.T)
+    return coef, em.transpose(1, 0, 2), cost
 
 
 def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30,
@@ -219,13 +219,9 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
                 kk += 1
         ge = np.einsum("smx,smx->sm", g, e) * wt
         gg = np.einsum("smx,smx->sm", g, g) * wt
-        H = np.empty((p.shape[0], npar, npar))
-        b = np.empty((p.shape[0], npar))
-        for i in range(npar):
-            b[:, i] = np.einsum("sm,sm->m", dy[..., i], ge)
-            dgi = dy[..., i] * gg
-            for j in range(i, npar):
-                H[:, i, j] = H[:, j, i] = np.einsum("sm,sm->m", dgi, dy[..., j])
+        J = np.ascontiguousarray(dy[..., :npar].transpose(1, 0, 2))  # (M, S, P)
+        b = np.matmul(ge.T[:, None, :], J)[:, 0]  # (M, P)
+        H = np.matmul((J * gg.T[..., None]).transpose(0, 2, 1), J)  # (M, P, P)
         Hd = H + lam[:, None, None] * (np.einsum("mii->mi", H)[..., None] * np.eye(npar)) + 1e-12 * np.eye(npar)
         step = np.linalg.solve(Hd, b[..., None])[..., 0]
         q = p.copy()
@@ -453,11 +449,16 @@ def _update_shifts(data: ModelData, model: FaceModel, takes) -> dict:
     return out
 
 
+SHIFT_TOL = 1e-3  # command units: a take's shift converged
+
+
 def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2,
                        step: float = 0.5, limit: float = 30.0) -> dict:
     """The bias shift per DU {DU: command units} that best fits take k's own measurement, the
-    rest of the model held: Gauss-Newton from the model's stored shift (or 0), finite
-    differences of ``step``; bounded to +-``limit``. Takes of DUs the model does not know: {}."""
+    rest of the model held: Gauss-Newton from the model's stored shift (or 0), with the
+    Jacobian from finite differences of ``step`` at the start (the chord method: later steps
+    reuse it, so each costs one prediction instead of one per DU and more); bounded to
+    +-``limit``. Takes of DUs the model does not know: {}."""
     t = data.takes[k]
     dus = [d for d in t.dus if d in model.du_ids]
     if not dus:
@@ -467,21 +468,26 @@ def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2
     ok = np.isfinite(obs).all(axis=-1) & data.used[None]
     s = np.array([model.take_shifts.get(t.name, {}).get(d, 0.0) if d in t.dus else 0.0
                   for d in t.dus], float)
+    J = solve = None
     for _ in range(iters):
         pred = model.predict_tables(tables, list(t.dus), t.trial, s)
         e = np.where(ok[..., None], obs - pred, 0.0)
-        J = []
-        for j in range(len(t.dus)):
-            sj = s.copy()
-            sj[j] += step
-            J.append(np.where(ok[..., None], model.predict_tables(tables, list(t.dus), t.trial, sj)
-                              - pred, 0.0).ravel() / step)
-        J = np.stack(J, axis=0)  # (n, S * M * 3); einsum: no BLAS threads for tiny products
-        JtJ = np.einsum("ij,kj->ik", J, J)
-        if not np.all(np.isfinite(JtJ)) or np.trace(JtJ) <= 0:
-            break
-        ds = np.linalg.solve(JtJ + 1e-9 * np.trace(JtJ) * np.eye(len(s)), np.einsum("ij,j->i", J, e.ravel()))
+        if J is None:
+            J = []
+            for j in range(len(t.dus)):
+                sj = s.copy()
+                sj[j] += step
+                J.append(np.where(ok[..., None], model.predict_tables(tables, list(t.dus), t.trial, sj)
+                                  - pred, 0.0).ravel() / step)
+            J = np.stack(J, axis=0)  # (n, S * M * 3); einsum: no BLAS threads for tiny products
+            JtJ = np.einsum("ij,kj->ik", J, J)
+            if not np.all(np.isfinite(JtJ)) or np.trace(JtJ) <= 0:
+                break
+            solve = JtJ + 1e-9 * np.trace(JtJ) * np.eye(len(s))
+        ds = np.linalg.solve(solve, np.einsum("ij,j->i", J, e.ravel()))
         s = np.clip(s + ds, -limit, limit)
+        if np.max(np.abs(ds)) < SHIFT_TOL:  # converged: a further step would not move it
+            break
     return {int(d): float(v) for d, v in zip(t.dus, s)}
 
 
