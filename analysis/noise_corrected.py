@@ -27,7 +27,7 @@ excursion, and the markers' independent errors add to the variance over markers.
    takes, the face at rest before each);
 2. the noise-free chord |d_m(t)| estimated along the marker's own path: p = d . u (u the principal
    direction, from the noise-corrected second moment) and the perpendicular part w(p) fitted as
-   a quadratic in p (a bowed path); chord g = sign(p) sqrt(p^2 + |w(p) - w(0)|^2). The
+   a cubic in p (a bowed or S-shaped path); chord g = sign(p) sqrt(p^2 + |w(p) - w(0)|^2). The
    perpendicular noise leaves (so |noise| adds no bias) and the remaining noise along the path
    has zero mean, also at rest (the sign keeps it so);
 3. max |d| as the mean of g over the hold at the top command once settled (``hold_frames``): no
@@ -35,30 +35,45 @@ excursion, and the markers' independent errors add to the variance over markers.
    the noisy curve keeps the frames whose noise is high: 4 % high for a 0.15 mm motion with
    3 trials at 0.05 mm); where the smoothed chord clearly exceeds that level elsewhere (a path
    bulging past its end point), the mean over the frames within 5 % of its smoothed maximum;
-4. per frame, the variance over the markers of delta = g / max less the mean over the markers of
-   each delta's noise variance (first order: the frame's own error, the rest reference's and the
-   maximum's, with their overlaps; ``delta_noise_variance``), an unbiased estimate of the
-   noise-free variance;
+4. per frame, the variance over the markers of delta = g / max (each delta averaged over a box
+   of ``box_s``) less the mean over the markers of each delta's noise variance (first order: the
+   frame's own error through the chord's slope, the rest reference's through the chord's
+   ``rest_gain`` (an error along the path at rest moves the chord by the slope at rest near
+   rest, up to 1.4 times the error on a bowed path, and by about the error itself at the far
+   end), the maximum's, with their overlaps; ``delta_noise_variance``), an unbiased estimate of
+   the noise-free variance;
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
-   deviation by the signed square root sign(v) sqrt(|v|): unbiased where the true spread is 0
-   (at rest, on the plateau, where clipping at 0 would leave a positive bias of
-   0.4 sqrt(sd of the estimate)), the plain square root where the spread is well above its noise;
-   the mean over the schedule's frames floored at 0.
+   deviation by a soft signed square root (``soft_signed_sqrt``): the plain root where the
+   variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise
+   (``variance_noise_sd``) from 0, linear in it below. A root of a zero-mean estimate is what
+   costs the most: where the true spread is 0 (the hold, the rest) the signed root
+   sign(v) sqrt(|v|) is unbiased but turns noise of sd tau into errors of sd ~0.9 sqrt(tau),
+   and no smoothing helps (a longer box divides tau and the number of independent values
+   alike); linear below 3 tau the errors there are ~tau / sqrt(3 tau), still with mean 0 (on
+   3-trial takes at 0.05 mm with 60 markers the face-to-face sd fell from 9 to 6 % with the
+   take's own rest, from 7-8 to 4-5 % with the rest pooled over other takes). Clipping at 0 instead
+   would leave a positive bias of 0.4 sqrt(tau) per independent value. The mean over the
+   schedule's frames floored at 0.
 
-Its limits: the rest reference (the frames before the first command step, 6 per trial in the
-paper's schedule, fix d = 0 for every later frame, so their error is a constant of each marker's
-curve that no averaging over time removes: its expected variance is subtracted, its realisation
-is not; pooling the other takes' rest frames shrinks it), and the square root where the true
-spread is comparable to the noise of the variance estimate (the signed root then leans low: a
-steep DU whose spread lives in a few frames, or markers moving < 0.1 mm). Where the true spread
-is below the noise of the smallest markers' normalised curves the estimate is no better than 0
-to 2 x the truth (docs/indices.md).
+Its limits (measured in benchmarks/index_monte_carlo.md and docs/indices.md): the rest reference
+(the frames before the first command step, 6 per trial in the paper's schedule, fix d = 0 for
+every later frame, so their error is a constant of each marker's curve that no averaging over
+time removes: its expected variance is subtracted, its realisation is not; pooling the other
+takes' rest frames, as the session analysis does, shrinks it 16-fold); the soft root, which leans
+low where the true spread is positive but below ~3 tau (the edges of the ramps, the settling at
+the top: -1 to -3 % of gamma on 3-trial takes at 0.05 mm); the box, which smooths away part of
+the spread between curves that step at different sub-step times (-1.5 % on faces with
+per-marker dead times); and a remaining negative lean of a few % with few markers (30) at 3
+trials and 0.05 mm, where the variance estimate on the hold comes out slightly below its noise-free
+value and its noise is skewed (a few small markers dominate it). Where the true spread is below
+the noise of the smallest markers' normalised curves the estimate is no better than 0 to 2 x the
+truth (docs/indices.md).
 """
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -66,8 +81,9 @@ from mocap.analysis.displacement import plateau_mask, smoothed
 from mocap.analysis.paper_indices import TIME_TOL_S, ScheduleTiming
 
 NORMALISE_S = 0.25  # smoothing of the chord for finding its plateau (3 s hold in the paper)
-MIN_NOISE_DOF = 30
-PATH_DEGREE = 3  # the perpendicular part of a path as a polynomial of this degree in p  # per marker, below this the still frames do not measure the noise
+MIN_NOISE_DOF = 30  # per marker, below this the still frames do not measure the noise
+PATH_DEGREE = 3  # the perpendicular part of a path as a polynomial of this degree in p
+SOFT_ROOT = 3.0  # the spread's root is linear below this many sd of its variance's noise
 
 
 @dataclass(frozen=True)
@@ -179,7 +195,10 @@ class PathChord:
     """Noise-free chord estimate of each marker's trial-mean displacement.
 
     chord (n_frames, M) mm signed; delta (n_frames, M) chord / peak; peak (M,) mm; slope
-    (n_frames, M) d chord / d p (how noise along the path reaches the chord); along_var (M,)
+    (n_frames, M) d chord / d p (how noise along the path reaches the chord); rest_gain
+    (n_frames, M) how an error of the rest reference along the path reaches the chord (the
+    chord's direction dotted with the path's tangent at rest: the slope at rest near rest, about
+    1 at the far end of a path that bows); along_var (M,)
     mm^2 the noise variance along the path of one trial's frame; rest (n_frames,) bool the rest
     frames; plateau (n_frames, M) bool; rest_samples (M,) how many single-trial frames the rest
     reference averages (this take's rest frames, plus the other takes' when pooled).
@@ -189,6 +208,7 @@ class PathChord:
     delta: np.ndarray
     peak: np.ndarray
     slope: np.ndarray
+    rest_gain: np.ndarray
     along_var: np.ndarray
     rest: np.ndarray
     plateau: np.ndarray
@@ -251,8 +271,13 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     dwp = dwp / np.where(scale > 0, scale, 1.0)[None, :, None]
     g2 = p * p + np.sum(wp * wp, axis=-1)
     chord = np.sign(p) * np.sqrt(g2)
+    dw0 = coef[:, 1] / np.where(scale > 0, scale, 1.0)[:, None]  # (M, 3) the path's w'(0)
     with np.errstate(invalid="ignore", divide="ignore"):
         slope = np.where(g2 > 0, np.sign(p) * (p + np.sum(wp * dwp, axis=-1)) / np.sqrt(g2), 1.0)
+        # a rest reference off by e along u measures the chord from the path's point at p = e:
+        # the chord changes by -e (chord direction . (u + w'(0)))
+        rest_gain = np.where(g2 > 0, np.sign(p) * (p + np.sum(wp * dw0[None], axis=-1)) / np.sqrt(g2),
+                             np.sqrt(1.0 + np.sum(dw0 * dw0, axis=-1))[None])
     # the maximum: the mean over the settled hold at the top command (no noise excursion, no
     # selection by the noise); where the smoothed chord clearly rises above it elsewhere (a path
     # bulging beyond its end point), the mean over the frames near that maximum instead
@@ -274,7 +299,7 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     with np.errstate(invalid="ignore", divide="ignore"):
         delta = chord / np.where(peak > 0, peak, np.nan)[None]
     along_var = np.einsum("mi,mij,mj->m", u, noise_cov, u)
-    return PathChord(chord, delta, peak, slope, along_var, rest, plateau, samples)
+    return PathChord(chord, delta, peak, slope, rest_gain, along_var, rest, plateau, samples)
 
 
 def box_mean(x: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -294,11 +319,12 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
     """(n_frames, M) first-order noise variance of each path-chord delta averaged over a centred
     box of ``frames`` frames (module docstring, 4).
 
-    delta_hat = delta + (e_t - (1 - delta) e_A - delta e_H) / peak with e_t the frame's error
-    along the path (variance along_var / n_trials, times the chord's slope squared), e_A the
-    rest reference's (``rest_samples`` single-trial frames: the rest frames A, and the other
-    takes' when pooled; variance along_var / rest_samples) and e_H the maximum's (the mean over
-    the frames H, ``plateau``). Over a box F of |F| frames the first term's variance is
+    delta_hat = delta + (J e_t - (c - delta c_H) e_A - delta e_H) / peak with e_t the frame's
+    error along the path (variance along_var / n_trials; J the chord's slope), e_A the rest
+    reference's along the path (c the chord's ``rest_gain``, c_H its mean over H; the mean of
+    ``rest_samples`` single-trial frames: the rest frames A, and the other takes' when pooled;
+    variance along_var / rest_samples) and e_H the maximum's (the mean over the frames H,
+    ``plateau``). Over a box F of |F| frames the first term's variance is
     sum_F J^2 s^2 / |F|^2, and a box overlapping A (or H) shares its frames' errors with e_A
     (or e_H): the cross terms below.
     """
@@ -325,10 +351,16 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
 
     cnt = np.maximum(cnt, 1)
     own = box_sum(J * J * s2) / cnt**2
+    # the rest error e_A reaches the chord as -c e_A (c = rest_gain) and the maximum as -c_H e_A
+    # (c_H its mean over H): delta's error carries -(c - delta c_H) e_A
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cH = np.nanmean(np.where(H, pc.rest_gain, np.nan), axis=0)[None]
+    cA = box_sum(pc.rest_gain) / cnt - d * np.where(np.isfinite(cH), cH, 1.0)
     # a trial-mean rest frame seen by K trials weighs K / nR in the reference: cov = var / nR
     withA = box_sum(np.where(A, J * pc.along_var[None], 0.0)) / (cnt * nR)
     withH = box_sum(np.where(H, J * s2, 0.0)) / (cnt * nH)
-    var = own + (1 - d) ** 2 * vA + d**2 * vH - 2 * (1 - d) * withA - 2 * d * withH
+    var = own + cA**2 * vA + d**2 * vH - 2 * cA * withA - 2 * d * withH
     with np.errstate(invalid="ignore", divide="ignore"):
         return var / pc.peak[None] ** 2
 
@@ -336,6 +368,44 @@ def delta_noise_variance(pc: PathChord, n_trials: np.ndarray, frames: int = 1) -
 def signed_sqrt(v: np.ndarray) -> np.ndarray:
     """sign(v) sqrt(|v|): unbiased for a standard deviation of 0 from a zero-mean variance estimate."""
     return np.sign(v) * np.sqrt(np.abs(v))
+
+
+def soft_signed_sqrt(v: np.ndarray, threshold: np.ndarray) -> np.ndarray:
+    """sqrt(v) where |v| >= threshold, v / sqrt(threshold) below it (continuous, odd).
+
+    For a variance estimate v = V + N with zero-mean noise N, the signed root is unbiased at V = 0
+    but turns N of sd tau into errors of sd ~0.9 sqrt(tau), and these do not average out with
+    smoothing (a box of W frames divides tau by W and the number of independent values by W as
+    well). Linear below ``threshold`` (a few tau), the root keeps E = 0 at V = 0 with errors of sd
+    tau / sqrt(threshold), and is the plain root where V is well above its noise; it leans low
+    only where 0 < V < threshold."""
+    v = np.asarray(v, float)
+    thr = np.asarray(threshold, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lin = np.where(thr > 0, v / np.sqrt(thr), 0.0)
+    return np.where(np.abs(v) >= thr, signed_sqrt(v), lin)
+
+
+def variance_noise_sd(d: np.ndarray, nv: np.ndarray, box: int, smooth: int) -> np.ndarray:
+    """(n_frames,) sd of the noise of the per-frame variance over markers of box-averaged deltas
+    ``d`` (n_frames, M) less their noise ``nv`` (n_frames, M), once averaged over ``smooth``
+    frames: for independent errors e_m of variance nv_m, var(sum_m (d_m - mean)^2 / (M - 1)) =
+    (2 sum nv^2 + 4 sum (d_m - mean)^2 nv) / (M - 1)^2, and a box of ``box`` frames makes
+    successive errors correlated (rho(k) = 1 - |k| / box), which the average over ``smooth``
+    frames keeps (sum over its pairs of rho^2 and rho). (d_m - mean)^2 is taken less nv_m, its
+    own noise's share."""
+    lags = np.arange(-(smooth - 1), smooth)
+    pairs = smooth - np.abs(lags)
+    rho = np.maximum(0.0, 1.0 - np.abs(lags) / max(box, 1))
+    f2, f1 = np.sum(pairs * rho**2) / smooth**2, np.sum(pairs * rho) / smooth**2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        m = np.sum(np.isfinite(d) & np.isfinite(nv), axis=1).astype(float)
+        # the true deviations' squares: the noisy ones less their noise (else counted twice)
+        dev2 = (d - np.nanmean(d, axis=1, keepdims=True)) ** 2 - nv
+        v = (2 * f2 * np.nansum(nv**2, axis=1)
+             + np.maximum(4 * f1 * np.nansum(dev2 * nv, axis=1), 0.0)) / (m - 1) ** 2
+    return smoothed(np.sqrt(np.where(m > 1, v, np.nan)), smooth)
 
 
 def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndarray,
@@ -360,18 +430,21 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     inside = np.zeros(n, bool)
     inside[sched] = True
     frames = max(1, int(round(box_s * fps)))
-    pc_in = PathChord(pc.chord, np.where(inside[:, None], pc.delta, np.nan), pc.peak, pc.slope,
-                      pc.along_var, pc.rest, pc.plateau, pc.rest_samples)
+    pc_in = replace(pc, delta=np.where(inside[:, None], pc.delta, np.nan))
     d, _ = box_mean(pc_in.delta, frames)
     nv = delta_noise_variance(pc_in, n_trials, frames)
     d, nv = d[sched][:, keep], nv[sched][:, keep]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         var = np.nanvar(d, axis=1, ddof=1) - np.nanmean(nv, axis=1)
-    var = smoothed(var, max(1, int(round(smooth_s * fps))))
-    # the mean of signed roots is unbiased; it is negative only where the spread is lost in the
-    # noise, and a standard deviation is reported as such: floored at 0
-    return max(float(np.nanmean(signed_sqrt(var))), 0.0), pc
+    smooth = max(1, int(round(smooth_s * fps)))
+    var = smoothed(var, smooth)
+    tau = variance_noise_sd(d, nv, frames, smooth)
+    # the mean of the (soft) signed roots is unbiased where the spread is 0 or well above its
+    # noise; it is negative only where the spread is lost in the noise, and a standard deviation
+    # is reported as such: floored at 0
+    root = soft_signed_sqrt(var, SOFT_ROOT * np.where(np.isfinite(tau), tau, 0.0))
+    return max(float(np.nanmean(root)), 0.0), pc
 
 
 def corrected_fits(pc: PathChord, keep: np.ndarray, timing: ScheduleTiming,

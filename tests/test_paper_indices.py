@@ -7,6 +7,8 @@ code with mocap.analysis (nor with tests/synthetic_faces.py's generator, which o
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -160,9 +162,11 @@ def plain_spread_and_linearity(trials, time_s, command, fps):
     return gamma, float(np.mean([lam[-1] / lam.sum() for lam in lin]))
 
 
-def corrected_vs_truth(family, K, sigma, seeds):
+def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0):
     """(relative dyssynchrony errors, linearity errors, the literal formula's relative error on
-    the noisy data) over seeds."""
+    the noisy data) over seeds. ``prior_takes`` > 0: the rest reference pooled with the face's
+    rest seen in that many other takes (K trials x 6 rest frames each, the same noise), as the
+    session analysis pools the other DUs' takes."""
     from mocap.analysis.noise_corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
@@ -173,14 +177,20 @@ def corrected_vs_truth(family, K, sigma, seeds):
     rel, lin, raw = [], [], []
     for seed in seeds:
         rng = np.random.default_rng(seed)
-        take = make_take(rng, family=family, n_markers=30, n_trials=K)
+        take = make_take(rng, family=family, n_markers=markers, n_trials=K)
         tm = schedule_timing(take.time_s, take.command)
         gamma, linearity = plain_spread_and_linearity(take.trials, take.time_s, take.command, FPS)
-        noisy = add_noise(rng, take.trials, sigma)[0]
+        noisy, cov = add_noise(rng, take.trials, sigma)
         noise = capture_noise_covariance(noisy, take.series, FPS)
         n_tr = np.full(noisy.shape[1:3], K)
-        g, _ = corrected_dyssynchrony(noisy.mean(axis=0), n_tr, np.ones(30, bool), tm, FPS,
-                                      noise.cov)
+        prior = None
+        if prior_takes:
+            n_prior = prior_takes * K * 6
+            rest = take.trials[:, 0].mean(axis=0) + np.einsum(
+                "mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(markers, 3))) / np.sqrt(n_prior)
+            prior = (rest, np.full(markers, float(n_prior)))
+        g, _ = corrected_dyssynchrony(noisy.mean(axis=0), n_tr, np.ones(markers, bool), tm, FPS,
+                                      noise.cov, rest_prior=prior)
         lc = corrected_linearity(noisy, tm, FPS, noise.cov)
         rel.append(g / gamma - 1)
         lin.append(np.mean(lc) - linearity)
@@ -192,18 +202,38 @@ def corrected_vs_truth(family, K, sigma, seeds):
 @pytest.mark.parametrize("K", [3, 10])
 @pytest.mark.parametrize("sigma", [0.02, 0.05])
 def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
-    """20 faces per case (markers moving 0.15-3 mm, timing scatter, bowed or off-chord paths,
-    trial shifts), anisotropic noise: the corrected indices against the paper's recipe on the
-    noise-free trials (a plain second implementation). The literal formula on the noisy data is
-    1.5 to 5 times the truth; the estimate is unbiased within 10 % and typically within 10 %; a
-    single 3-trial take at 0.05 mm can miss by up to ~40 % (the rest reference, 6 frames at
-    rest, is the limit). Linearity within 0.02 every time."""
+    """20 faces per case (30 markers moving 0.15-3 mm, timing scatter, bowed or off-chord paths,
+    trial shifts), anisotropic noise, the take's own rest frames only (6 per trial): the
+    corrected indices against the paper's recipe on the noise-free trials (a plain second
+    implementation). The literal formula on the noisy data is 1.5 to 5 times the truth; the
+    estimate is within 10 % on average and on the typical face, on every face within 15 % at
+    10 trials or 0.02 mm and within 30 % at 3 trials and 0.05 mm (measured: worst 13 % and 24 %;
+    there it leans 6-9 % low, the rest reference and the few markers its limit). Linearity
+    within 0.02 every time."""
     rel, lin, raw = corrected_vs_truth(family, K, sigma, range(20))
     assert np.all(raw > 0.5), raw  # the noise the correction has to remove
     assert abs(np.mean(rel)) < 0.10, rel
-    assert np.median(np.abs(rel)) < 0.10, rel
-    assert np.max(np.abs(rel)) < (0.2 if (K == 10 or sigma == 0.02) else 0.5), rel
+    assert np.median(np.abs(rel)) < 0.11, rel
+    assert np.max(np.abs(rel)) < (0.15 if (K == 10 or sigma == 0.02) else 0.30), rel
     assert abs(np.mean(lin)) < 0.005 and np.max(np.abs(lin)) < 0.02, lin
+
+
+@pytest.mark.parametrize("family", ["bow", "offchord"])
+@pytest.mark.parametrize(("K", "sigma"), [(3, 0.02), (3, 0.035), (10, 0.02), (10, 0.05), (3, 0.05)])
+def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, sigma):
+    """The session analysis pools each take's rest reference with the face's rest in the other
+    DUs' takes (15 here, each K trials x 6 frames): 20 faces of 60 markers per case. Every single
+    face within 10 % of the recipe on its noise-free trials (measured: worst 9.7 %, offchord faces
+    at 3 trials and 0.035 mm), the mean within 5 %; at 3 trials and 0.05 mm 80 % of the faces
+    (measured: 85-100 %), none beyond 20 %, the mean within 8 % (the soft root and the box lean
+    low there on faces with per-marker dead times: -5 %)."""
+    rel = corrected_vs_truth(family, K, sigma, range(20), markers=60, prior_takes=15)[0]
+    if (K, sigma) == (3, 0.05):
+        assert np.mean(np.abs(rel) < 0.10) >= 0.8 and np.max(np.abs(rel)) < 0.2, rel
+        assert abs(np.mean(rel)) < 0.08, rel
+    else:
+        assert np.max(np.abs(rel)) < 0.10, rel
+        assert abs(np.mean(rel)) < 0.05, rel
 
 
 def test_capture_noise_from_still_frames_ignores_trial_differences():
@@ -402,3 +432,65 @@ def test_corrected_fits_against_the_recipe_on_noise_free_trials(family, K, sigma
     err, lit = np.array(err), np.array(lit)
     assert np.max(np.abs(err[:, 0])) < 0.05 and np.max(np.abs(err[:, 1:])) < 2.0, err
     assert np.mean(lit[:, 0]) < -0.05 and np.mean(lit[:, 1:]) > 1.0, lit
+
+
+def test_variance_noise_sd_matches_simulated_spread_noise():
+    """The noise sd of the per-frame variance over markers (the soft root's scale) against the
+    sd of that variance over many frames of simulated box-averaged noise, with and without a
+    true spread between the markers; heteroscedastic markers (0.15-3 mm, 3 trials, 0.05 mm)."""
+    from scipy.ndimage import uniform_filter1d
+
+    from mocap.analysis.noise_corrected import variance_noise_sd
+
+    rng = np.random.default_rng(5)
+    M, n, W = 30, 6000, 12
+    sd = 0.029 / np.exp(rng.uniform(np.log(0.15), np.log(3.0), M))
+    for offset in (np.zeros(M), rng.normal(0, 0.05, M)):
+        d = offset[None] + uniform_filter1d(rng.normal(size=(n, M)) * sd, W, axis=0)
+        nv = np.broadcast_to(sd**2 / W, (n, M))
+        v = np.var(d, axis=1, ddof=1) - nv.mean(axis=1)
+        v = uniform_filter1d(v, W)[100:-100]
+        tau = variance_noise_sd(d, nv, W, W)[100:-100]
+        assert np.median(tau) == pytest.approx(v.std(), rel=0.15)
+
+
+def test_delta_noise_variance_matches_the_realised_error_at_rest():
+    """Each normalised curve's predicted noise variance (box of 0.1 s) against its realised
+    squared error on the first 0.3 s (the rest and the ramp's start, where the rest reference's
+    error counts most), bowed paths (an error along the path at rest moves the chord by the path's
+    slope there, up to 1.4 times), 3 trials at 0.05 mm: within 25 % for every size class
+    (measured 0.94-1.20; without the path's slope at rest the prediction was 8-54 % low)."""
+    from mocap.analysis.noise_corrected import (
+        box_mean,
+        capture_noise_covariance,
+        delta_noise_variance,
+        path_chord,
+    )
+    from mocap.analysis.paper_indices import schedule_timing
+
+    err, pred, size = [], [], []
+    for seed in range(12):
+        rng = np.random.default_rng(100 + seed)
+        take = make_take(rng, family="bow", n_markers=40, n_trials=3)
+        tm = schedule_timing(take.time_s, take.command)
+        v0 = take.trials.mean(axis=0)
+        length = np.linalg.norm(v0 - v0[0], axis=2)
+        n = v0.shape[0]
+        inside = np.zeros(n, bool)
+        inside[tm.schedule(n, FPS)] = True
+        truth = np.where(inside[:, None], length / length[inside].max(axis=0), np.nan)
+        noisy = add_noise(rng, take.trials, 0.05)[0]
+        noise = capture_noise_covariance(noisy, take.series, FPS)
+        n_tr = np.full(noisy.shape[1:3], 3)
+        pc = path_chord(noisy.mean(axis=0), n_tr, tm, FPS, noise.cov)
+        pc = replace(pc, delta=np.where(inside[:, None], pc.delta, np.nan))
+        early = np.arange(n) / FPS < 0.3
+        d = box_mean(pc.delta, 12)[0][early]
+        t = box_mean(truth, 12)[0][early]
+        err.append(np.mean((d - t) ** 2, axis=0))
+        pred.append(np.mean(delta_noise_variance(pc, n_tr, 12)[early], axis=0))
+        size.append(length.max(axis=0))
+    err, pred, size = map(np.concatenate, (err, pred, size))
+    for lo, hi in ((0.15, 0.3), (0.3, 0.7), (0.7, 3.1)):
+        s = (size >= lo) & (size < hi)
+        assert 0.85 < err[s].mean() / pred[s].mean() < 1.25, (lo, err[s].mean() / pred[s].mean())
