@@ -270,7 +270,7 @@ def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex,
                                          gates, float(max_depth_mm), min_cams, unique_pair)
     views = views[keep]
     # rows are distinct (one per blob pair (a, b)): this is np.unique(views, axis=0)'s order
-    return views[np.lexsort(views.T[::-1])]
+    return views[kern.lex_order(views)]
 
 
 def _solve_views(views: np.ndarray, bt: BlobTable, rp: RigArrays) -> tuple[np.ndarray, np.ndarray]:
