@@ -109,50 +109,60 @@ def bucket_index(cam, fidx, uv, n_cams, n_frames):
         ptr[k + 1] += ptr[k]
     fill = ptr[:-1].copy()
     order = np.empty(n, np.int64)
+    xs = np.empty(n)  # image x of the blobs in ``order`` order: each bucket's read contiguously
     for i in range(n):
         k = cam[i] * n_frames + fidx[i]
         order[fill[k]] = i
+        xs[fill[k]] = uv[i, 0]
         fill[k] += 1
     # counting sort of every bucket by column band, then insertion sort by x within each band
     order_x = np.empty(n, np.int64)
+    x_x = np.empty(n)  # image x in ``order_x`` order
     cells = np.empty((nk, N_CELLS + 1), np.int64)
     x0 = np.zeros(nk)
     scale = np.zeros(nk)
     pos = np.empty(N_CELLS + 1, np.int64)
+    band = np.empty(n, np.int64)
     for k in range(nk):
         s, e = ptr[k], ptr[k + 1]
         if e > s:
-            lo = hi = uv[order[s], 0]
+            lo = hi = xs[s]
             for r in range(s + 1, e):
-                lo = min(lo, uv[order[r], 0])
-                hi = max(hi, uv[order[r], 0])
+                lo = min(lo, xs[r])
+                hi = max(hi, xs[r])
             x0[k] = lo
             if hi > lo:
                 scale[k] = N_CELLS / (hi - lo)
         pos[:] = 0
         for r in range(s, e):
-            pos[_cell(uv[order[r], 0], x0[k], scale[k]) + 1] += 1
+            q = _cell(xs[r], x0[k], scale[k])
+            band[r] = q
+            pos[q + 1] += 1
         for q in range(N_CELLS):
             pos[q + 1] += pos[q]
         for q in range(N_CELLS + 1):
             cells[k, q] = s + pos[q]
         for r in range(s, e):
-            i = order[r]
-            q = _cell(uv[i, 0], x0[k], scale[k])
-            order_x[s + pos[q]] = i
+            q = band[r]
+            o = s + pos[q]
+            order_x[o] = order[r]
+            x_x[o] = xs[r]
             pos[q] += 1
         for q in range(N_CELLS):
-            for r in range(cells[k, q] + 1, cells[k, q + 1]):
+            c0 = cells[k, q]
+            for r in range(c0 + 1, cells[k, q + 1]):
                 i = order_x[r]
-                x = uv[i, 0]
+                x = x_x[r]
                 h = r - 1
-                while h >= cells[k, q] and uv[order_x[h], 0] > x:
+                while h >= c0 and x_x[h] > x:
                     order_x[h + 1] = order_x[h]
+                    x_x[h + 1] = x_x[h]
                     h -= 1
                 order_x[h + 1] = i
+                x_x[h + 1] = x
     uv_x = np.empty((n, 2))
     for r in range(n):
-        uv_x[r, 0] = uv[order_x[r], 0]
+        uv_x[r, 0] = x_x[r]
         uv_x[r, 1] = uv[order_x[r], 1]
     return ptr, order, order_x, uv_x, cells, x0, scale
 
