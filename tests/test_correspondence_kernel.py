@@ -144,6 +144,16 @@ def test_band_sort_and_lookup_are_sort_and_searchsorted():
                 assert kern._first_at_least(k, n, start, lo, scale, x) == np.searchsorted(k, x)
 
 
+def test_frame_order_is_a_stable_argsort_of_the_kept_rows():
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        m = int(rng.integers(0, 300))
+        frame = rng.integers(0, int(rng.choice([3, 50, 10**6])), m) + int(rng.integers(-5, 1000))
+        keep = rng.random(m) < rng.random()
+        np.testing.assert_array_equal(kern.frame_order(frame, keep),
+                                      np.flatnonzero(keep)[np.argsort(frame[keep], kind="stable")])
+
+
 @pytest.mark.parametrize("take", ["rest", "du04_t01"])
 def test_compiled_linking_matches_reference(small_sim, small_run, take):
     rig, quality = small_run.calibration.rig, small_run.calibration.quality

@@ -317,7 +317,5 @@ def _final_triangulation(views: np.ndarray, bt: BlobTable, rp: RigArrays, gates:
     if changed.any():
         X[changed], err[:, changed] = _solve_views(views[changed], bt, rp)
     n_cam, resid, frame = kern.point_summary(views, err, bt.frame)
-    keep = n_cam >= min_cams
-    order = np.argsort(frame[keep], kind="stable")
-    return Points3D(frame[keep][order], X[keep][order], n_cam[keep][order], resid[keep][order],
-                    views[keep][order])
+    rows = kern.frame_order(frame, n_cam >= min_cams)
+    return Points3D(frame[rows], X[rows], n_cam[rows], resid[rows], views[rows])

@@ -706,3 +706,43 @@ def point_summary(views, err, frame):
         resid[r] = np.sqrt(s / max(n_cam[r], 1))
         fr[r] = frame[last] if last >= 0 else -1
     return n_cam, resid, fr
+
+
+@njit(cache=True, error_model="numpy")
+def frame_order(frame, keep):
+    """Indices of the rows with ``keep`` (m,) bool, stably ordered by ``frame`` (m,) int: as
+    ``np.flatnonzero(keep)[np.argsort(frame[keep], kind="stable")]``, by a counting sort over
+    the frames' range (argsort when the range is much wider than the rows)."""
+    m = frame.size
+    n = 0
+    lo, hi = 0, -1
+    for r in range(m):
+        if keep[r]:
+            if n == 0:
+                lo = hi = frame[r]
+            else:
+                lo = min(lo, frame[r])
+                hi = max(hi, frame[r])
+            n += 1
+    rows = np.empty(n, np.int64)
+    if n == 0:
+        return rows
+    if hi - lo > 4 * n + 1024:
+        k = 0
+        for r in range(m):
+            if keep[r]:
+                rows[k] = r
+                k += 1
+        return rows[np.argsort(frame[rows], kind="mergesort")]
+    start = np.zeros(hi - lo + 2, np.int64)
+    for r in range(m):
+        if keep[r]:
+            start[frame[r] - lo + 1] += 1
+    for q in range(hi - lo + 1):
+        start[q + 1] += start[q]
+    for r in range(m):
+        if keep[r]:
+            q = frame[r] - lo
+            rows[start[q]] = r
+            start[q] += 1
+    return rows
