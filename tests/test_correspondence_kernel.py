@@ -146,7 +146,7 @@ def test_band_sort_and_lookup_are_sort_and_searchsorted():
 
 def test_frame_order_is_a_stable_argsort_of_the_kept_rows():
     rng = np.random.default_rng(3)
-    for trial in range(200):
+    for _ in range(200):
         m = int(rng.integers(0, 300))
         frame = rng.integers(0, int(rng.choice([3, 50, 10**6])), m) + int(rng.integers(-5, 1000))
         keep = rng.random(m) < rng.random()
