@@ -113,6 +113,47 @@ def test_nearest_blob_is_the_brute_force_nearest():
             assert j == expect
 
 
+def test_lex_order_is_numpy_lexsort():
+    """The natural merge sort of candidate rows orders them as np.lexsort (stable), for rows
+    presorted, shuffled, with duplicates and with -1 entries."""
+    rng = np.random.default_rng(1)
+    for trial in range(400):
+        m, C = int(rng.integers(0, 120)), int(rng.integers(1, 7))
+        views = rng.integers(-1, int(rng.integers(1, 6)), size=(m, C))
+        if trial % 3 == 0 and m:  # mostly in order, as a pair's candidates come
+            views = views[np.lexsort(views.T[::-1])]
+            views[rng.integers(0, m, 3)] = rng.integers(-1, 3, C)
+        np.testing.assert_array_equal(kern.lex_order(views), np.lexsort(views.T[::-1]))
+
+
+def test_band_sort_and_lookup_are_sort_and_searchsorted():
+    """The epipolar-angle keys' counting sort and band lookup against np.sort and
+    np.searchsorted, with ties, a single key and a NaN key."""
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 5, 17, 130):
+        for trial in range(40):
+            keys = np.round(rng.uniform(0, 12, n), int(rng.integers(0, 3)))
+            if trial == 0 and n > 2:
+                keys[1] = np.nan
+            k, idx = keys.copy(), np.arange(n)
+            start = np.empty(n + 1, np.int64)
+            lo, scale = kern._band_sort(k, idx, n, np.empty(n), np.empty(n, np.int64), start)
+            np.testing.assert_array_equal(k, np.sort(keys))
+            np.testing.assert_array_equal(keys[idx], k)
+            for x in np.concatenate([keys, keys + 1e-9, keys - 1e-9, [-3.0, 40.0, np.nan]]):
+                assert kern._first_at_least(k, n, start, lo, scale, x) == np.searchsorted(k, x)
+
+
+def test_frame_order_is_a_stable_argsort_of_the_kept_rows():
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        m = int(rng.integers(0, 300))
+        frame = rng.integers(0, int(rng.choice([3, 50, 10**6])), m) + int(rng.integers(-5, 1000))
+        keep = rng.random(m) < rng.random()
+        np.testing.assert_array_equal(kern.frame_order(frame, keep),
+                                      np.flatnonzero(keep)[np.argsort(frame[keep], kind="stable")])
+
+
 @pytest.mark.parametrize("take", ["rest", "du04_t01"])
 def test_compiled_linking_matches_reference(small_sim, small_run, take):
     rig, quality = small_run.calibration.rig, small_run.calibration.quality

@@ -91,8 +91,11 @@ class BlobTable:
     ray: np.ndarray  # (n, 3) unit, world
 
     @classmethod
-    def from_frame(cls, blobs: pd.DataFrame, rig: CameraRig) -> "BlobTable":
-        cam = blob_camera_index(blobs["camera"], rig.ids)
+    def from_frame(cls, blobs: pd.DataFrame, rig: CameraRig,
+                   cam: np.ndarray | None = None) -> "BlobTable":
+        """``cam`` (n,) int: :func:`blob_camera_index` of the blobs when the caller has it."""
+        if cam is None:
+            cam = blob_camera_index(blobs["camera"], rig.ids)
         if np.any(cam < 0):
             bad = sorted(set(blobs["camera"][cam < 0]))
             raise ValueError(f"blobs from cameras {bad} that the calibration does not have {rig.ids}")
@@ -135,6 +138,12 @@ def camera_gates(rig: CameraRig, quality: dict | None, settings: ReconstructionS
                      for c in rig])
 
 
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u x v of two (3,) vectors (np.cross's axis handling costs ~40 us a call)."""
+    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                     u[0] * v[1] - u[1] * v[0]])
+
+
 @dataclass(frozen=True)
 class PairGeometry:
     """Epipolar geometry of cameras (a, b): unit baseline ``bn`` with ``e1``, ``e2`` completing an
@@ -151,9 +160,9 @@ class PairGeometry:
         ca, cb = rig[a], rig[b]
         base = cb.center - ca.center
         bn = base / np.linalg.norm(base)
-        e1 = np.cross(bn, [0.0, 0.0, 1.0] if abs(bn[2]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 = _cross(bn, np.array([0.0, 0.0, 1.0] if abs(bn[2]) < 0.9 else [1.0, 0.0, 0.0]))
         e1 /= np.linalg.norm(e1)
-        e2 = np.cross(bn, e1)
+        e2 = _cross(bn, e1)
         R_ab = cb.R @ ca.R.T
         t_ab = cb.t - R_ab @ ca.t
         tx = np.array([[0, -t_ab[2], t_ab[1]], [t_ab[2], 0, -t_ab[0]], [-t_ab[1], t_ab[0], 0]])
@@ -196,7 +205,8 @@ def _empty_points(C: int) -> Points3D:
 
 
 def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None = None,
-                       settings: ReconstructionSettings = ReconstructionSettings()) -> Points3D:
+                       settings: ReconstructionSettings = ReconstructionSettings(), *,
+                       cam: np.ndarray | None = None) -> Points3D:
     """Match blobs across cameras and triangulate every frame of a take.
 
     Parameters
@@ -204,8 +214,10 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
     blobs : a take's blobs (frame, camera, x, y); row order defines blob indices.
     rig : calibrated cameras (the same ids as the blobs' cameras).
     quality : the calibration's quality report (per-camera reprojection RMS sets the gates).
+    cam : (n,) int, ``blob_camera_index(blobs["camera"], rig.ids)`` when the caller needs it
+        too (a paper take's 400 k camera ids cost ~7 ms to index).
     """
-    bt = BlobTable.from_frame(blobs, rig)
+    bt = BlobTable.from_frame(blobs, rig, cam)
     C = len(rig)
     rp = RigArrays.of(rig)
     gates = camera_gates(rig, quality, settings).astype(np.float64)
@@ -216,6 +228,7 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
     pairs = sorted(combinations(range(C), 2),
                    key=lambda p: -np.linalg.norm(rp.centre[p[0]] - rp.centre[p[1]]))
     accepted: list[np.ndarray] = []
+    geometry: dict[tuple[int, int], PairGeometry] = {}
     # the blobs the candidate search walks: dropped from the buckets once most are used
     pool = (index.ptr, index.order)
     n_pool = n_unused = n_blobs
@@ -225,7 +238,9 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
             if n_unused < n_pool // 2:
                 pool = kern.compact_buckets(*pool, used)
                 n_pool = n_unused
-            views = _pair_points(bt, rig, rp, index, pool, a, b, gates, used,
+            if (a, b) not in geometry:
+                geometry[a, b] = PairGeometry.of(rig, a, b)
+            views = _pair_points(bt, geometry[a, b], rp, index, pool, a, b, gates, used,
                                  settings.max_depth_mm, min_cams)
             if views.shape[0] == 0:
                 continue
@@ -240,15 +255,14 @@ def reconstruct_points(blobs: pd.DataFrame, rig: CameraRig, quality: dict | None
     return _final_triangulation(np.concatenate(accepted), bt, rp, gates, 2)
 
 
-def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex,
+def _pair_points(bt: BlobTable, geo: PairGeometry, rp: RigArrays, index: BlobIndex,
                  pool: tuple[np.ndarray, np.ndarray], a: int, b: int, gates: np.ndarray,
                  used: np.ndarray, max_depth_mm: float, min_cams: int) -> np.ndarray:
     """Candidate rows (m, C) of blob indices (-1: no view) from the unused blobs of cameras
     (a, b), each with the support ``min_cams`` asks for, in lexicographic row order.
 
     ``pool`` (ptr, order): the (camera, frame) buckets of at least every unused blob."""
-    C = len(rig)
-    geo = PairGeometry.of(rig, a, b)
+    C = rp.K.shape[0]
     gate = max(gates[a], gates[b])
     dth = 40.0 * gate / min(rp.focal[a], rp.focal[b])  # generous window in angle, rad
     pa, pb = kern.pair_candidates(a, b, pool[0], pool[1], index.n_frames, bt.frame, bt.xn,
@@ -270,7 +284,7 @@ def _pair_points(bt: BlobTable, rig: CameraRig, rp: RigArrays, index: BlobIndex,
                                          gates, float(max_depth_mm), min_cams, unique_pair)
     views = views[keep]
     # rows are distinct (one per blob pair (a, b)): this is np.unique(views, axis=0)'s order
-    return views[np.lexsort(views.T[::-1])]
+    return views[kern.lex_order(views)]
 
 
 def _solve_views(views: np.ndarray, bt: BlobTable, rp: RigArrays) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +317,5 @@ def _final_triangulation(views: np.ndarray, bt: BlobTable, rp: RigArrays, gates:
     if changed.any():
         X[changed], err[:, changed] = _solve_views(views[changed], bt, rp)
     n_cam, resid, frame = kern.point_summary(views, err, bt.frame)
-    keep = n_cam >= min_cams
-    order = np.argsort(frame[keep], kind="stable")
-    return Points3D(frame[keep][order], X[keep][order], n_cam[keep][order], resid[keep][order],
-                    views[keep][order])
+    rows = kern.frame_order(frame, n_cam >= min_cams)
+    return Points3D(frame[rows], X[rows], n_cam[rows], resid[rows], views[rows])

@@ -109,50 +109,60 @@ def bucket_index(cam, fidx, uv, n_cams, n_frames):
         ptr[k + 1] += ptr[k]
     fill = ptr[:-1].copy()
     order = np.empty(n, np.int64)
+    xs = np.empty(n)  # image x of the blobs in ``order`` order: each bucket's read contiguously
     for i in range(n):
         k = cam[i] * n_frames + fidx[i]
         order[fill[k]] = i
+        xs[fill[k]] = uv[i, 0]
         fill[k] += 1
     # counting sort of every bucket by column band, then insertion sort by x within each band
     order_x = np.empty(n, np.int64)
+    x_x = np.empty(n)  # image x in ``order_x`` order
     cells = np.empty((nk, N_CELLS + 1), np.int64)
     x0 = np.zeros(nk)
     scale = np.zeros(nk)
     pos = np.empty(N_CELLS + 1, np.int64)
+    band = np.empty(n, np.int64)
     for k in range(nk):
         s, e = ptr[k], ptr[k + 1]
         if e > s:
-            lo = hi = uv[order[s], 0]
+            lo = hi = xs[s]
             for r in range(s + 1, e):
-                lo = min(lo, uv[order[r], 0])
-                hi = max(hi, uv[order[r], 0])
+                lo = min(lo, xs[r])
+                hi = max(hi, xs[r])
             x0[k] = lo
             if hi > lo:
                 scale[k] = N_CELLS / (hi - lo)
         pos[:] = 0
         for r in range(s, e):
-            pos[_cell(uv[order[r], 0], x0[k], scale[k]) + 1] += 1
+            q = _cell(xs[r], x0[k], scale[k])
+            band[r] = q
+            pos[q + 1] += 1
         for q in range(N_CELLS):
             pos[q + 1] += pos[q]
         for q in range(N_CELLS + 1):
             cells[k, q] = s + pos[q]
         for r in range(s, e):
-            i = order[r]
-            q = _cell(uv[i, 0], x0[k], scale[k])
-            order_x[s + pos[q]] = i
+            q = band[r]
+            o = s + pos[q]
+            order_x[o] = order[r]
+            x_x[o] = xs[r]
             pos[q] += 1
         for q in range(N_CELLS):
-            for r in range(cells[k, q] + 1, cells[k, q + 1]):
+            c0 = cells[k, q]
+            for r in range(c0 + 1, cells[k, q + 1]):
                 i = order_x[r]
-                x = uv[i, 0]
+                x = x_x[r]
                 h = r - 1
-                while h >= cells[k, q] and uv[order_x[h], 0] > x:
+                while h >= c0 and x_x[h] > x:
                     order_x[h + 1] = order_x[h]
+                    x_x[h + 1] = x_x[h]
                     h -= 1
                 order_x[h + 1] = i
+                x_x[h + 1] = x
     uv_x = np.empty((n, 2))
     for r in range(n):
-        uv_x[r, 0] = uv[order_x[r], 0]
+        uv_x[r, 0] = x_x[r]
         uv_x[r, 1] = uv[order_x[r], 1]
     return ptr, order, order_x, uv_x, cells, x0, scale
 
@@ -181,27 +191,76 @@ def compact_buckets(ptr, order, used):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _epipolar_angle(ray, i, bn, e1, e2):
-    """Angle (rad, [0, 2 pi]) about the baseline ``bn`` of blob i's epipolar plane."""
+    """Angle (rad, [0, 2 pi]) about the baseline ``bn`` of blob i's epipolar plane, and the sine
+    of the angle between blob i's ray and the baseline."""
     n0 = bn[1] * ray[i, 2] - bn[2] * ray[i, 1]
     n1 = bn[2] * ray[i, 0] - bn[0] * ray[i, 2]
     n2 = bn[0] * ray[i, 1] - bn[1] * ray[i, 0]
-    return np.arctan2(n0 * e2[0] + n1 * e2[1] + n2 * e2[2],
-                      n0 * e1[0] + n1 * e1[1] + n2 * e1[2]) + np.pi
+    return (np.arctan2(n0 * e2[0] + n1 * e2[1] + n2 * e2[2],
+                       n0 * e1[0] + n1 * e1[1] + n2 * e1[2]) + np.pi,
+            np.sqrt(n0 * n0 + n1 * n1 + n2 * n2))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _angle_bound(gate_px, focal, xn, i, sin_ray):
+    """Upper bound (rad) on the angle between blob i's epipolar plane and that of any blob whose
+    symmetric epipolar distance to it is under ``gate_px`` px in blob i's image; inf when the
+    geometry gives none.
+
+    The epipolar line of the other blob is the trace of its plane: blob i's normalised point
+    q = (x, y, 1) lies ``alg / |l|`` from that plane (``l`` the line's 3 coefficients, ``alg`` the
+    algebraic error), and ``|l| >= hypot(l0, l1)``, so passing the test puts q under
+    ``s = gate_px / focal`` from the plane; q is ``rho = |q| sin(ray, baseline)`` from the
+    baseline's axis, which both planes contain, so the planes' angle phi has ``sin phi < s /
+    rho``, and ``phi < asin(s / rho) <= (pi / 3) s / rho`` for ``s / rho <= 1 / 2``. Widened by a
+    relative 1e-6 and 1e-8 rad against rounding (the keys are ``frame * 8 + angle``).
+    """
+    rho = np.sqrt(xn[i, 0] * xn[i, 0] + xn[i, 1] * xn[i, 1] + 1.0) * sin_ray
+    s = gate_px / (focal * rho)
+    if s <= 0.5:  # also rejects NaN
+        return s * (np.pi / 3.0) * (1.0 + 1e-6) + 1e-8
+    return np.inf
 
 
 @njit(cache=True, error_model="numpy")
-def _sort_pairs(keys, idx, n):
-    """Sort keys[:n] ascending in place, idx[:n] along (insertion sort below 32 items, where
-    most frames' leftover blobs are, to spare an allocation per frame)."""
-    if n > 32:
+def _band_sort(keys, idx, n, keys2, idx2, start):
+    """Sort keys[:n] ascending in place, idx[:n] along, without allocating: a counting sort
+    into n equal bands of the keys' range, then insertion sort (each key moves only within its
+    band). keys2, idx2 (>= n,) float and int scratch; start (>= n + 1,) int.
+
+    Returns (lo, scale): key k lies in band ``q = int((k - lo) * scale)`` and band q's keys are
+    ``keys[start[q]:start[q + 1]]``; scale is NaN when a key is not finite (then sorted by
+    ``np.argsort``, NaN last, and the bands are not set).
+    """
+    lo = hi = keys[0]
+    finite = True
+    for r in range(n):
+        finite &= np.isfinite(keys[r])
+        lo = min(lo, keys[r])
+        hi = max(hi, keys[r])
+    if not (finite and np.isfinite(hi - lo)):
         o = np.argsort(keys[:n])
-        k2 = keys[:n][o]
-        i2 = idx[:n][o]
-        keys[:n] = k2
-        idx[:n] = i2
-        return
-    for r in range(1, n):
-        k, i = keys[r], idx[r]
+        keys2[:n] = keys[:n][o]
+        idx2[:n] = idx[:n][o]
+        keys[:n] = keys2[:n]
+        idx[:n] = idx2[:n]
+        return lo, np.nan
+    scale = (n - 1) / (hi - lo) if hi > lo else 0.0
+    start[: n + 1] = 0
+    for r in range(n):
+        start[int((keys[r] - lo) * scale) + 1] += 1
+    for q in range(n):
+        start[q + 1] += start[q]
+    for r in range(n):
+        q = int((keys[r] - lo) * scale)
+        keys2[start[q]] = keys[r]
+        idx2[start[q]] = idx[r]
+        start[q] += 1
+    for q in range(n, 0, -1):  # back from band ends to band starts
+        start[q] = start[q - 1]
+    start[0] = 0
+    for r in range(n):
+        k, i = keys2[r], idx2[r]
         h = r - 1
         while h >= 0 and keys[h] > k:
             keys[h + 1] = keys[h]
@@ -209,6 +268,28 @@ def _sort_pairs(keys, idx, n):
             h -= 1
         keys[h + 1] = k
         idx[h + 1] = i
+    return lo, scale
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _first_at_least(keys, n, start, lo, scale, x):
+    """First index r of the band-sorted keys[:n] (see :func:`_band_sort`) with keys[r] >= x
+    (n if none): as ``np.searchsorted(keys[:n], x)``. Bands are non-decreasing in the key, so
+    every key of an earlier band than x's is below x."""
+    if scale != scale:  # bands not set
+        return np.searchsorted(keys[:n], x)
+    if not x == x:
+        return n  # as searchsorted: NaN after every key
+    q = (x - lo) * scale
+    if q < 0.0:
+        r = 0
+    elif q >= n - 1:
+        r = start[n - 1]
+    else:
+        r = start[int(q)]
+    while r < n and keys[r] < x:
+        r += 1
+    return r
 
 
 @njit(cache=True, error_model="numpy")
@@ -220,7 +301,11 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
     baseline (unit ``bn``, with ``e1``, ``e2`` completing the basis); every unused blob of a takes
     those within ``dth`` rad of its own angle, then keeps those whose symmetric epipolar distance
     with the essential matrix ``E`` (3, 3; b from a) is under ``gate_px`` px in both images.
-    Returns two (m,) int arrays of blob indices.
+    Returns two (m,) int arrays of blob indices, by frame, then a's blob order, then angle.
+
+    Only the b blobs within the angle bound of the test itself (:func:`_angle_bound`, from a's
+    blob and from the frame's b blob nearest the baseline) are tried: no pair outside it can pass,
+    and it is usually far narrower than ``dth``.
     """
     cap = 1024
     pa = np.empty(cap, np.int64)
@@ -231,6 +316,9 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
         widest = max(widest, ptr[b * n_frames + f + 1] - ptr[b * n_frames + f])
     keys = np.empty(widest)
     idx = np.empty(widest, np.int64)
+    keys2 = np.empty(widest)
+    idx2 = np.empty(widest, np.int64)
+    start = np.empty(widest + 1, np.int64)
     # per sorted blob of b: normalised point, length of its epipolar line's normal in a, and the
     # algebraic error beyond which the test fails for sure (a cheap rejection before the exact test)
     xb = np.empty((widest, 2))
@@ -247,12 +335,12 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
         for k in range(ptr[b * n_frames + f], ptr[b * n_frames + f + 1]):
             j = order[k]
             if not used[j]:
-                keys[nb] = frame[j] * 8.0 + _epipolar_angle(ray, j, bn, e1, e2)
+                keys[nb] = frame[j] * 8.0 + _epipolar_angle(ray, j, bn, e1, e2)[0]
                 idx[nb] = j
                 nb += 1
         if nb == 0:
             continue
-        _sort_pairs(keys, idx, nb)
+        k_lo, k_scale = _band_sort(keys, idx, nb, keys2, idx2, start)
         kb = keys[:nb]
         jb = idx[:nb]
         for r in range(nb):
@@ -268,9 +356,14 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
             i = order[k]
             if used[i]:
                 continue
-            ka = frame[i] * 8.0 + _epipolar_angle(ray, i, bn, e1, e2)
-            lo = np.searchsorted(kb, ka - dth)
-            hi = np.searchsorted(kb, ka + dth)
+            th, sin_ray = _epipolar_angle(ray, i, bn, e1, e2)
+            ka = frame[i] * 8.0 + th
+            # b's blobs with ka - dth <= key < ka + dth, and within the test's own bound w <= dth
+            w = min(dth, _angle_bound(gate_px, focal_a, xn, i, sin_ray))
+            lo = _first_at_least(kb, nb, start, k_lo, k_scale, ka - w)
+            hi = lo
+            while hi < nb and kb[hi] < ka + dth and kb[hi] <= ka + w:
+                hi += 1
             xa0, xa1 = xn[i, 0], xn[i, 1]
             la0 = xa0 * E[0, 0] + xa1 * E[0, 1] + E[0, 2]  # epipolar line in b
             la1 = xa0 * E[1, 0] + xa1 * E[1, 1] + E[1, 2]
@@ -369,6 +462,74 @@ def verify_candidates(X, pa, pb, a, b, fidx, cells, x0, scale, order_x, uv_x, n_
         else:
             keep[r] = support >= min_cams
     return views, keep
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _row_less(views, r, q):
+    """Row r of views (m, C) before row q in lexicographic order."""
+    for c in range(views.shape[1]):
+        if views[r, c] != views[q, c]:
+            return views[r, c] < views[q, c]
+    return False
+
+
+@njit(cache=True, error_model="numpy")
+def lex_order(views):
+    """Indices (m,) sorting the rows of views (m, C) int lexicographically (stable: as
+    ``np.lexsort(views.T[::-1])``).
+
+    A natural merge sort: the ascending runs already present are merged pairwise, so rows that
+    come mostly in order (a pair's candidates come by frame, then by the first camera's blob)
+    cost about one comparison each.
+    """
+    m = views.shape[0]
+    idx = np.arange(m)
+    if m < 2:
+        return idx
+    starts = np.empty(m + 1, np.int64)
+    n_runs = 0
+    starts[0] = 0
+    for r in range(1, m):
+        if _row_less(views, r, r - 1):
+            n_runs += 1
+            starts[n_runs] = r
+    n_runs += 1
+    starts[n_runs] = m
+    if n_runs == 1:
+        return idx
+    buf = np.empty(m, np.int64)
+    while n_runs > 1:
+        k = 0
+        for g in range(0, n_runs, 2):
+            s = starts[g]
+            if g + 1 == n_runs:  # an odd run out: copied as it is
+                e = starts[g + 1]
+                buf[s:e] = idx[s:e]
+            else:
+                mid, e = starts[g + 1], starts[g + 2]
+                i, j, o = s, mid, s
+                while i < mid and j < e:
+                    if _row_less(views, idx[j], idx[i]):  # ties keep the left run first
+                        buf[o] = idx[j]
+                        j += 1
+                    else:
+                        buf[o] = idx[i]
+                        i += 1
+                    o += 1
+                while i < mid:
+                    buf[o] = idx[i]
+                    i += 1
+                    o += 1
+                while j < e:
+                    buf[o] = idx[j]
+                    j += 1
+                    o += 1
+            starts[k] = s
+            k += 1
+        starts[k] = m
+        n_runs = k
+        idx, buf = buf, idx
+    return idx
 
 
 @njit(cache=True, error_model="numpy")
@@ -545,3 +706,43 @@ def point_summary(views, err, frame):
         resid[r] = np.sqrt(s / max(n_cam[r], 1))
         fr[r] = frame[last] if last >= 0 else -1
     return n_cam, resid, fr
+
+
+@njit(cache=True, error_model="numpy")
+def frame_order(frame, keep):
+    """Indices of the rows with ``keep`` (m,) bool, stably ordered by ``frame`` (m,) int: as
+    ``np.flatnonzero(keep)[np.argsort(frame[keep], kind="stable")]``, by a counting sort over
+    the frames' range (argsort when the range is much wider than the rows)."""
+    m = frame.size
+    n = 0
+    lo, hi = 0, -1
+    for r in range(m):
+        if keep[r]:
+            if n == 0:
+                lo = hi = frame[r]
+            else:
+                lo = min(lo, frame[r])
+                hi = max(hi, frame[r])
+            n += 1
+    rows = np.empty(n, np.int64)
+    if n == 0:
+        return rows
+    if hi - lo > 4 * n + 1024:
+        k = 0
+        for r in range(m):
+            if keep[r]:
+                rows[k] = r
+                k += 1
+        return rows[np.argsort(frame[rows], kind="mergesort")]
+    start = np.zeros(hi - lo + 2, np.int64)
+    for r in range(m):
+        if keep[r]:
+            start[frame[r] - lo + 1] += 1
+    for q in range(hi - lo + 1):
+        start[q + 1] += start[q]
+    for r in range(m):
+        if keep[r]:
+            q = frame[r] - lo
+            rows[start[q]] = r
+            start[q] += 1
+    return rows

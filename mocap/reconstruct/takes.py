@@ -170,9 +170,9 @@ def reconstruct_take(name: str, blobs: pd.DataFrame, rig, quality: dict, markers
     from mocap.reconstruct.labeling import label_take
 
     n_frames = take_frame_count(blobs)
-    pts = reconstruct_points(blobs, rig, quality, reconstruction)
-    lab = label_take(pts, markers, n_frames, labels, fill_gaps_frames, n_blobs=len(blobs))
     cam_idx = blob_camera_index(blobs["camera"], rig.ids)
+    pts = reconstruct_points(blobs, rig, quality, reconstruction, cam=cam_idx)
+    lab = label_take(pts, markers, n_frames, labels, fill_gaps_frames, n_blobs=len(blobs))
     missing = np.isnan(lab.X[..., 0])
     capture = CaptureCounts.of_take(
         missing, np.bincount(cam_idx, minlength=len(rig)),
