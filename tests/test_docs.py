@@ -12,7 +12,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 PAGES = ("index.md", "format.md", "outputs.md", "cli.md", "api.md", "architecture.md",
-         "calibration.md", "indices.md", "simulator.md")
+         "calibration.md", "indices.md", "simulator.md", "discrepancy.md")
 
 
 def python_blocks(text: str) -> list[str]:
