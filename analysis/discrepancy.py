@@ -410,10 +410,11 @@ def cv_base(data: ModelData, effects) -> CVFit:
     return CVFit(models, s, n)
 
 
-def cv_candidate(data: ModelData, current: CVFit, name: str) -> CVFit | None:
+def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None) -> CVFit | None:
     """The candidate fitted on each fold and scored on the other; None when the fit on fold 0
-    does not lower the held-out SSE of fold 1 at all (screened out: not fitted on fold 1)."""
-    cls = CATALOGUE[name]
+    does not lower the held-out SSE of fold 1 at all (screened out: not fitted on fold 1).
+    ``cls`` : the effect class (default ``CATALOGUE[name]``)."""
+    cls = CATALOGUE[name] if cls is None else cls
     models, values = [], []
     for f in (0, 1):
         prof = profile_effect(data, current.models[f], cls(), fold_takes(data, f))
@@ -488,6 +489,7 @@ class Step:
     evidence: list[dict]
     explained: float
     per_du: dict = field(default_factory=dict)  # DU id -> the parameter from its own takes
+    named: bool = True  # False: kept in the model, but an alternative explains it as well
 
 
 @dataclass
@@ -645,16 +647,30 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         ok = [e for e in evidence if e.get("testable") and not e.get("screened_out")
               and e["score"] < -settings.margin and e["explained"] >= settings.min_explained
               and e["rms_gain_vs_noise"] >= settings.min_rms_gain and e["plausible"]]
-        if not ok:
-            break
-        best = min(ok, key=lambda e: e["score"])
-        name = best["effect"]
-        # parameters and uncertainty from all takes
+        # the best candidate whose parameter, identified again on all takes, is still plausible
+        # (the folds can each find a value the whole session does not support: a dead time
+        # added after a second-order lag read 0 s on all takes and was named)
         t_c = time.perf_counter()
         all_takes = list(range(len(data.takes)))
         full = stage_models[-1]
+        best = prof = None
+        for item in sorted(ok, key=lambda e: e["score"]):
+            cls = CATALOGUE[item["effect"]]
+            prof = profile_effect(data, full, cls(), all_takes)
+            if cls.per_curve or cls(prof.best).plausible():
+                best = item
+                break
+            item["plausible"] = False
+            shown = cls(prof.best).describe()
+            item["reason"] = (f"on all takes its {cls.parameter} is {shown['value']:.4g} "
+                              f"{shown['unit']}, "
+                              "not a plausible value: the folds' gain does not hold on the "
+                              "whole session")
+            say(f"  {item['effect']} not named: {item['reason']}")
+        if best is None:
+            break
+        name = best["effect"]
         cls = CATALOGUE[name]
-        prof = profile_effect(data, full, cls(), all_takes)
         model = prof.model
         params, unc = {}, {}
         if cls.per_curve:
@@ -672,17 +688,24 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             unc = {cls.parameter: float(se)}
         per_du = per_du_values(data, model, name) if cls.affects_curves and not cls.per_curve else {}
         say(f"  {name} on all takes: {time.perf_counter() - t_c:.1f} s")
+        alt = (lag_order_alternative(data, current, best, n_eff, settings.margin)
+               if name == "deadtime" and "lag" in have else None)
+        if alt:
+            alternatives.append(alt)
+            say(f"  {name} kept in the model but not named: {alt['reason']}")
         before = current.rms_mm
         current = fits[name]
         s, n, res = heldout(data, current.models)
         residual_sets.append(res)
         stage_models.append(model)
-        named.append(name)
-        stages.append(_stage(data, current, res, floor, "+".join(settings.base + tuple(named)),
-                             prep.phase_labels))
+        if not alt:
+            named.append(name)
+        model_label = "+".join(settings.base + tuple(s_.effect for s_ in steps) + (name,))
+        stages.append(_stage(data, current, res, floor, model_label, prep.phase_labels))
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
-                          per_du))
-        say(f"named {name} {params}: held-out RMS {before:.4f} -> {current.rms_mm:.4f} mm")
+                          per_du, named=not alt))
+        say(f"{'kept' if alt else 'named'} {name} {params}: held-out RMS {before:.4f} -> "
+            f"{current.rms_mm:.4f} mm")
     # drift last: the trend of the takes' bias shifts, read from the final model (an effect still
     # missing, such as a lag, would bias the shifts)
     last = stage_models[-1]
@@ -703,6 +726,37 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                              final_evidence=evidence, excluded_markers=prep.excluded,
                              heldout_residuals=residual_sets, models_by_stage=stage_models,
                              base_report=base_report(stage_models[0]), alternatives=alternatives)
+
+
+def lag_order_alternative(data: ModelData, current: CVFit, best: dict, n_eff: float,
+                          margin: float) -> dict | None:
+    """A dead time about to be named after a lag, weighed against a second-order lag of the
+    same mean delay in place of the first-order one (one parameter fewer than lag + dead time).
+    Both delay a ramp by their mean delay and differ only just after a step, so when the
+    second-order lag's held-out score is within ``margin`` of the dead time's, the data cannot
+    tell them apart: returns the alternative to report (and the dead time is not named), else
+    None."""
+    from mocap.analysis.model_effects import SecondOrderLag
+
+    swap = cv_candidate(data, current, "lag", cls=SecondOrderLag)
+    if swap is None:
+        return None
+    score = n_eff * np.log(swap.sse / current.sse)  # no parameter added: the lag is replaced
+    if score > best["score"] + margin:
+        return None
+    return {"effects": ["deadtime", "second-order lag"],
+            "evidence": {"deadtime_score": round(float(best["score"]), 1),
+                         "second_order_lag_score": round(float(score), 1),
+                         "second_order_lag_heldout_rms_mm": round(swap.rms_mm, 5),
+                         "deadtime_heldout_rms_mm": round(float(best["heldout_rms_mm"]), 5),
+                         "second_order_tau_s": [round(float(v), 5) for v in swap.values]},
+            "reason": (f"after the lag, a dead time (fold values {best['fold_values']} s) "
+                       f"scores {best['score']:.1f} held-out BIC units; the lag made second "
+                       f"order instead (the same mean delay, one parameter fewer) scores "
+                       f"{score:.1f}, no worse by more than the margin ({margin:g}): a "
+                       "higher-order actuator and a lag plus a small dead time fit these takes "
+                       "alike (the model keeps lag + dead time for its predictions); steps "
+                       "sampled finely against the lag would tell them apart")}
 
 
 def shift_trend(points: list[tuple[int, int, float]]) -> dict:

@@ -18,6 +18,8 @@ Shards run side by side (one process each) and append JSON lines; ``--summarise`
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 0/2 > /tmp/sweep0.jsonl
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 1/2 > /tmp/sweep1.jsonl
     python benchmarks/cross_family_sweep.py --summarise /tmp/sweep0.jsonl /tmp/sweep1.jsonl
+    python benchmarks/cross_family_sweep.py --cases pi-bow:lag:2,boucwen-bow:lag+drift:2 > x.jsonl
+    python benchmarks/cross_family_sweep.py --summarise x.jsonl --out cross_family_sweep_alt
 """
 
 from __future__ import annotations
@@ -158,9 +160,15 @@ def main() -> int:
     ap.add_argument("--shard", default="0/1", help="i/n: run every n-th case from the i-th")
     ap.add_argument("--summarise", nargs="*", type=Path, help="JSON-lines files of earlier runs")
     ap.add_argument("--note", default="", help="a paragraph added to the table (how it was run)")
+    ap.add_argument("--cases", default="", help="FAMILY:EFFECT:SEED,... run just these (effects "
+                    "joined by '+', e.g. pi-bow:lag+drift:2) instead of the seeds' whole grid")
+    ap.add_argument("--out", default="cross_family_sweep",
+                    help="file stem of the summary in benchmarks/ (.md and .json)")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    planned = len(cases(seeds))
+    chosen = [(f, e.replace("+", ","), int(sd)) for f, e, sd in
+              (c.split(":") for c in args.cases.split(",") if c)]
+    planned = len(chosen) if chosen else len(cases(seeds))
     if args.summarise is not None:
         rows = [json.loads(line) for p in args.summarise for line in p.read_text().splitlines()
                 if line.startswith("{")]
@@ -168,14 +176,14 @@ def main() -> int:
         if args.note:
             head, sep, tail = md.partition("| target |")
             md = head + args.note.strip() + "\n\n" + sep + tail
-        (HERE / "cross_family_sweep.json").write_text(json.dumps({"summary": summary, "rows": rows},
-                                                                 indent=1) + "\n")
-        (HERE / "cross_family_sweep.md").write_text(md)
+        (HERE / f"{args.out}.json").write_text(json.dumps({"summary": summary, "rows": rows},
+                                                           indent=1) + "\n")
+        (HERE / f"{args.out}.md").write_text(md)
         print(md.split("| family |")[0])
         return 0
     i, n = (int(v) for v in args.shard.split("/"))
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (fam, eff, seed) in enumerate(cases(seeds)):
+        for k, (fam, eff, seed) in enumerate(chosen or cases(seeds)):
             if k % n != i:
                 continue
             try:

@@ -42,6 +42,7 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
         before, after = res.stages[i], res.stages[i + 1]
         steps.append({
             "effect": s.effect,
+            "named": s.named,
             "meaning": CATALOGUE[s.effect].meaning,
             "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
@@ -142,7 +143,9 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
             for e in s.evidence:
                 L.append(_evidence_row(e))
             unit = CATALOGUE[s.effect].unit
-            L += ["", f"**Named: {s.effect}** ({CATALOGUE[s.effect].meaning}): " + ", ".join(
+            head = ("Named" if s.named else
+                    "Kept in the model, not named (an alternative explains it as well)")
+            L += ["", f"**{head}: {s.effect}** ({CATALOGUE[s.effect].meaning}): " + ", ".join(
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
                 for k, v in s.parameters.items()) +
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
