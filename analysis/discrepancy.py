@@ -693,6 +693,8 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         if alt:
             alternatives.append(alt)
             say(f"  {name} kept in the model but not named: {alt['reason']}")
+        if name == "backlash":
+            alternatives.append(dead_band_alternative(params[cls.parameter], model))
         before = current.rms_mm
         current = fits[name]
         s, n, res = heldout(data, current.models)
@@ -757,6 +759,22 @@ def lag_order_alternative(data: ModelData, current: CVFit, best: dict, n_eff: fl
                        "higher-order actuator and a lag plus a small dead time fit these takes "
                        "alike (the model keeps lag + dead time for its predictions); steps "
                        "sampled finely against the lag would tell them apart")}
+
+
+def dead_band_alternative(halfwidth: float, model: FaceModel) -> dict:
+    """What a named backlash could also be: a dead band in the skin's own hysteresis. A play
+    in the actuator followed by the skin's plays is one operator with wider plays, so the takes
+    cannot say where the band sits; the base's loops hold what a density can, and the band is
+    what they could not. Reported beside the naming, never instead of it."""
+    loops = {int(d): round(float(np.median(model.loop_width()[n][model.active[n]])), 2)
+             for n, d in enumerate(model.du_ids) if model.active[n].any()}
+    return {"effects": ["backlash", "hysteresis dead band"],
+            "evidence": {"halfwidth": round(float(halfwidth), 3), "loop_width": loops},
+            "reason": (f"after every reversal the face holds for about {2 * halfwidth:.1f} command "
+                       "units: a dead band in the actuator (named: backlash) or in the skin's "
+                       "own hysteresis (a branch play, relays that all need a push to switch) "
+                       "fit alike; a take that moves the actuator without the skin (or a "
+                       "position sensor on it) would tell them apart")}
 
 
 def shift_trend(points: list[tuple[int, int, float]]) -> dict:
