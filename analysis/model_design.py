@@ -26,7 +26,14 @@ displacement, so the design may call a slightly smaller motion "1" and keep some
 to drive a lagging actuator towards it), r_m(t) the reference (the plan's ideal, the same for
 every marker; per marker in a refinement) and w_m the marker weights (:func:`marker_weights`).
 The markers' mean follows the plan (what the evaluation measures); their spread around it is
-mostly beyond any command, and with several DUs decides how they share the work.
+mostly beyond any command, and with several DUs decides how they share the work. That share
+matters even though only the mean is scored: the evaluation normalises each marker by its own
+largest displacement in the take, so a DU driven past its share for a moment and backed off
+later (the mean held by another DU) leaves its markers below 1 for the rest of the take. With a
+weak spread term (0.05) the search traded work between DUs at the end of a fast rise (DU 7 at
+207, then 45; its markers held at 0.95 of their peak): plan E on a Bouc-Wen bowed face with a
+hidden second-order lag (0.08 s) tracked at 0.37 of the paper method's RMS; with 0.2, 0.11
+(plan A 0.18 either way; benchmarks/design_sweep.md).
 
 The model's state is stepped exactly between command steps: a command held over a step drives
 the actuator monotonically (first-order lag: a(t) = c + (a0 - c) exp(-t / tau)), so every
@@ -438,7 +445,7 @@ def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) ->
 def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.016,
                     fall_start_s: float | None = None, weights: np.ndarray | None = None,
                     preview: int = 1, horizon: int = 12, sweeps: int = 0,
-                    headroom: float = 24.0, spread_weight: float = 0.05,
+                    headroom: float = 24.0, spread_weight: float = 0.2,
                     trial: int = 1) -> ModelDesign:
     """Commands of ``dus`` whose model response follows ``ref`` (see the module docstring).
 
@@ -459,7 +466,8 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
         (the logistic is flat there: a few units cost a fraction of a percent of motion).
     spread_weight : weight of the markers' own errors against the error of their mean (the
         mean is what follows the plan; the markers' spread around it is partly beyond any
-        command, and with several DUs this term decides how they share the work).
+        command, and with several DUs this term decides how they share the work: each marker
+        should rise monotonically to its hold, see the module docstring).
     trial : the trial the commands are designed for (the ``drift`` effect's bias).
     """
     import time

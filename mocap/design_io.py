@@ -122,7 +122,7 @@ def virtual_face_of(path):
     """(SimConfig, VirtualFace) of a simulated session (its truth/truth.json next to session/),
     or None for a real one. ``path``: the session folder, its parent, or a `mocap run` output."""
     from mocap.simulate import preset
-    from mocap.simulate.effects import make_effect
+    from mocap.simulate.effects import CombinedEffect, HiddenEffect, make_effect
     from mocap.simulate.session_writer import virtual_rig_and_face
 
     p = Path(path)
@@ -134,28 +134,48 @@ def virtual_face_of(path):
             info = json.loads(cand.read_text())
             c = info["config"]
             eff = info.get("effect", {})
-            if "effects" in eff:
-                names = [e["name"] for e in eff["effects"]]
-                strengths = [e["strength"] for e in eff["effects"]]
+            parts = eff["effects"] if "effects" in eff else [eff]
+            names = [e.get("name", "none") for e in parts]
+            strengths = [e.get("strength", 0.0) for e in parts]
+            forms = {e.get("form", "model") for e in parts}
+            if len(forms) > 1:
+                effect = CombinedEffect(tuple(HiddenEffect.default(n, s, e.get("form", "model"))
+                                              for n, s, e in zip(names, strengths, parts)))
             else:
-                names, strengths = [eff.get("name", "none")], [eff.get("strength", 0.0)]
-            effect = make_effect(names, strengths if names != ["none"] else None)
+                effect = make_effect(names, strengths if names != ["none"] else None,
+                                     form=forms.pop())
+            # the family the session was made with (the one drawn for 'random'), so the closed
+            # loop plays the same face as the session's takes
+            family = info.get("face_family", {}).get("name", c.get("face_family", "pi"))
             cfg = preset(c["preset"], seed=c["seed"], du_ids=tuple(c["du_ids"]),
                          n_markers=c["n_markers"], n_trials=c["n_trials"],
-                         n_cameras=c.get("n_cameras"), fps=c["fps"], effect=effect)
+                         n_cameras=c.get("n_cameras"), fps=c["fps"], effect=effect,
+                         face_family=family)
             return cfg, virtual_rig_and_face(cfg)[2]
     return None
 
 
 def play_virtual(cfg, face, rows: pd.DataFrame, duration_s: float, noise_mm: float = 0.0,
-                 seed: int = 0) -> np.ndarray:
+                 seed: int = 0, trial_variation: bool = True) -> np.ndarray:
     """Marker positions (n_frames, M, 3) mm of ``rows`` played on the virtual face with its hidden
-    effect; noise-free, or with the trial variation and ``noise_mm`` of measurement noise."""
+    effect: noise-free (the mean response), or with ``noise_mm`` of measurement noise and, with
+    ``trial_variation``, a real take's trial-to-trial variation (see :func:`play_virtual_take`)."""
+    return play_virtual_take(cfg, face, rows, duration_s, noise_mm, seed, trial_variation)[1]
+
+
+def play_virtual_take(cfg, face, rows: pd.DataFrame, duration_s: float, noise_mm: float = 0.0,
+                      seed: int = 0, trial_variation: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A take of ``rows`` on the virtual face: (true, measured) marker positions (n_frames, M, 3)
+    mm. Noise-free (``noise_mm`` 0) both are the face's mean response; otherwise the measured
+    positions add ``noise_mm`` of measurement noise per axis to the true ones, which (with
+    ``trial_variation``) carry a real take's trial-to-trial variation: bias and amplitude shifts,
+    the family's per-take bias shift and the skin's jitter, drawn from ``seed``. Score a design
+    on the true positions: the evaluation's normalised displacement is biased by noise."""
     from mocap.simulate.motion import true_positions
 
     n = int(round(duration_s * cfg.fps))
     rng = np.random.default_rng(seed) if noise_mm > 0 else None
-    X = true_positions(face, cfg.effect, rows, n, cfg.fps, 1, rng)
-    if rng is not None:
-        X = X + rng.normal(0.0, noise_mm, X.shape)
-    return X
+    X = true_positions(face, cfg.effect, rows, n, cfg.fps, 1, rng if trial_variation else None)
+    if rng is None:
+        return X, X
+    return X, X + rng.normal(0.0, noise_mm, X.shape)

@@ -260,3 +260,55 @@ def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
                  "--effects", "wobble", "--out", str(out2)]) == 1
     assert "unknown wobble" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# a base-face family the model does not share (issue #15)
+
+
+def test_closed_loop_plays_the_sessions_own_family_face(tmp_path):
+    """The --check face is the session's: its family and its effect's alternative form
+    (truth/face.parquet and truth.json), not the default pi face with the model-form effect."""
+    from mocap.simulate.effects import make_effect
+    from mocap.simulate.session_writer import face_table
+
+    make_session(tmp_path, face_family="preisach-offchord", effect=make_effect("lag", form="alt"),
+                 du_ids=(1, 7), n_markers=12, n_trials=1, labeled=True, motion_plans=(),
+                 battery=False, seed=5)
+    cfg, face = virtual_face_of(tmp_path / "session")
+    assert face.family.name == "preisach-offchord" and cfg.effect.form == "alt"
+    truth = pd.read_parquet(tmp_path / "truth" / "face.parquet")
+    mine = face_table(face)
+    for col in ("peak_x", "alpha", "beta", "r_half", "alpha_bwd", "path_x"):
+        np.testing.assert_allclose(mine[col].to_numpy(), truth[col].to_numpy(), atol=1e-9)
+
+
+def test_model_design_on_a_bouc_wen_bowed_face_with_an_alt_lag(tmp_path):
+    """A face of another family (Bouc-Wen hysteresis, bowed marker paths, per-marker scatter and
+    per-take bias shifts) with a hidden second-order lag (an equation the model does not share):
+    the model identified from the session (the workflow's base: hysteresis, per-marker paths and
+    per-take shifts; plus its first-order lag) designs plans B-E that track at most a third of
+    the paper method's RMS on the TRUE face (the simulator plays both designs), with the paper's
+    sigmoids at their best (the true face's): 0.08-0.19 of it. Plan A (0.33 here) is left out:
+    its fast rise is where the model's first-order lag departs most from the face's second-order
+    one (benchmarks/design_sweep.md)."""
+    from mocap.simulate.effects import make_effect
+
+    make_session(tmp_path, face_family="boucwen-bow", effect=make_effect("lag", form="alt"),
+                 du_ids=DUS, n_markers=20, n_trials=2, labeled=True, labeled_noise_mm=0.03,
+                 motion_plans=(), seed=1)
+    model, _ = identify_model(tmp_path / "session", ["hysteresis", "curvature", "takeshift", "lag"])
+    cfg, face = virtual_face_of(tmp_path / "session")
+    assert face.family.name == "boucwen-bow"
+    props = true_properties(cfg, face).set_index("du")
+    responses = {d: SigmoidPair(props.loc[d, "alpha_fwd"], props.loc[d, "beta_fwd"],
+                                props.loc[d, "alpha_bwd"], props.loc[d, "beta_bwd"]) for d in DUS}
+    for plan in "BCDE":
+        ref = plan_reference(plan, TIMING)
+        des = design_commands(model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+        assert_valid_command_file(des.rows, TIMING.step_s)
+        paper = paper_design(plan, responses, TIMING, DUS)
+        ev_p = evaluate_design(play_virtual(cfg, face, paper, ref.end_s + 0.25), paper, cfg.fps, ref)
+        ev_m = evaluate_design(play_virtual(cfg, face, des.rows, ref.end_s + 0.25), des.rows,
+                               cfg.fps, ref)
+        assert rms(ev_m) <= rms(ev_p) / 3, (plan, rms(ev_m), rms(ev_p))

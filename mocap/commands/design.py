@@ -29,8 +29,9 @@ tracking error of the take updates the reference (the previous design's X.refere
 by --reference) and the commands are designed again; a few repetitions converge.
 
 --check: for a simulated session, play the paper's and the model's designs on the same virtual
-face (with its hidden effect), evaluate them against the plan (RMS of the normalised displacement
-forward and backward, lag) and draw them side by side (X.check.png).
+face (the session's own: its base-face family and its hidden effect in the form it was made
+with), evaluate them against the plan (RMS of the normalised displacement forward and backward,
+lag) and draw them side by side (X.check.png).
 
 Timing follows the paper unless told otherwise: --start-s 0.25 of rest, the plan over
 --duration-s 2.08 (130 command steps of --step-s 0.016), a --hold-s 1.0 hold, the return over
