@@ -41,6 +41,7 @@ from mocap.analysis.model_effects import (
     CANDIDATES,
     CATALOGUE,
     ScheduleSummary,
+    command_moves,
     summarize_schedules,
 )
 from mocap.analysis.model_fit import (
@@ -107,17 +108,10 @@ def schedule_class(t: TakeData) -> tuple[int, bool]:
     the range (a minor loop)."""
     rates, inner = [], False
     for _du, g in t.rows.groupby("du"):
-        g = g.sort_values("time_s", kind="stable")
-        c = g["command"].to_numpy(float)
-        dc = np.diff(c)
-        dt = np.diff(g["time_s"].to_numpy(float))
-        moving = dc != 0
-        if not moving.any():
-            continue
-        rates.append(np.abs(dc[moving]) / np.maximum(dt[moving], 1e-6))
-        s = np.sign(dc[moving])
-        levels = c[1:][moving][np.flatnonzero(s[1:] != s[:-1])]
-        inner |= bool(np.any((levels > 0.05 * 255) & (levels < 0.95 * 255)))
+        step_rate, _, turns_inside = command_moves(g)
+        if step_rate.size:
+            rates.append(step_rate)
+            inner |= turns_inside
     octave = int(np.round(np.log2(np.median(np.concatenate(rates))))) if rates else 0
     return octave, inner
 
@@ -766,7 +760,8 @@ def dead_band_alternative(halfwidth: float, model: FaceModel) -> dict:
     in the actuator followed by the skin's plays is one operator with wider plays, so the takes
     cannot say where the band sits; the base's loops hold what a density can, and the band is
     what they could not. Reported beside the naming, never instead of it."""
-    loops = {int(d): round(float(np.median(model.loop_width()[n][model.active[n]])), 2)
+    width = model.loop_width()
+    loops = {int(d): round(float(np.median(width[n][model.active[n]])), 2)
              for n, d in enumerate(model.du_ids) if model.active[n].any()}
     return {"effects": ["backlash", "hysteresis dead band"],
             "evidence": {"halfwidth": round(float(halfwidth), 3), "loop_width": loops},

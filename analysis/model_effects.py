@@ -364,6 +364,21 @@ BASE = ("hysteresis", "curvature", "takeshift")  # what every face has: the base
 CANDIDATES = ("lag", "deadtime", "backlash", "coupling", "drift", "saturation")
 
 
+def command_moves(g) -> tuple[np.ndarray, bool, bool]:
+    """One DU's command rows (time_s, command): the rate of each row that changes the command
+    (command units/s, over the time since the row before), whether it ever falls, and whether
+    it turns back inside the range (5-95 % of 255: a minor loop)."""
+    g = g.sort_values("time_s", kind="stable")
+    c = g["command"].to_numpy(float)
+    dc = np.diff(c)
+    dt = np.diff(g["time_s"].to_numpy(float))
+    moving = dc != 0
+    s = np.sign(dc[moving])
+    levels = c[1:][moving][np.flatnonzero(s[1:] != s[:-1])]
+    return (np.abs(dc[moving]) / np.maximum(dt[moving], 1e-6), bool((dc < 0).any()),
+            bool(np.any((levels > 0.05 * 255) & (levels < 0.95 * 255))))
+
+
 def summarize_schedules(rows_list, fps: float) -> ScheduleSummary:
     """What the commanded takes can reveal.
 
@@ -377,21 +392,12 @@ def summarize_schedules(rows_list, fps: float) -> ScheduleSummary:
         active = [d for d, g in rows.groupby("du") if (g["command"] > 0).any()]
         multi |= len(active) >= 2
         for _du, g in rows.groupby("du"):
-            g = g.sort_values("time_s")
-            c = g["command"].to_numpy(float)
-            t = g["time_s"].to_numpy(float)
-            dc = np.diff(c)
-            dt = np.diff(t)
-            moving = dc != 0
-            if not moving.any():
+            step_rate, fall, turns_inside = command_moves(g)
+            if step_rate.size == 0:
                 continue
-            falling |= bool((dc < 0).any())
+            falling |= fall
             # ramp rate: a change per step over the step's duration, binned by octaves
-            step_rate = np.abs(dc[moving]) / np.maximum(dt[moving], 1e-6)
             rates.update(np.round(np.log2(step_rate)).astype(int).tolist())
-            s = np.sign(dc[moving])
-            turn = np.flatnonzero(s[1:] != s[:-1])
-            levels = c[1:][moving][turn]
-            inner |= bool(np.any((levels > 0.05 * 255) & (levels < 0.95 * 255)))
+            inner |= turns_inside
     return ScheduleSummary(n_rates=len(rates), falling=falling, inner_reversals=inner,
                            multi_du=multi, repeated_trials=any(v >= 2 for v in seen.values()))
