@@ -36,7 +36,9 @@ excursion, and the markers' independent errors add to the variance over markers.
    3 trials at 0.05 mm); where the smoothed chord clearly exceeds that level elsewhere (a path
    bulging past its end point), the mean over the frames within 5 % of its smoothed maximum;
 4. per frame, the variance over the markers of delta = g / max (each delta averaged over a box
-   of ``box_s``) less the mean over the markers of each delta's noise variance (first order: the
+   of ``box_s``, and of ``HOLD_BOX_S`` deep in the settled hold at the top, where the deltas are
+   flat: the hold is most of the schedule and its true spread is near 0, so its noise, not its
+   spread, is what reaches gamma there) less the mean over the markers of each delta's noise variance (first order: the
    frame's own error through the chord's slope, the rest reference's through the chord's
    ``rest_gain`` (an error along the path at rest moves the chord by the slope at rest near
    rest, up to 1.4 times the error on a bowed path, and by about the error itself at the far
@@ -44,8 +46,14 @@ excursion, and the markers' independent errors add to the variance over markers.
    the noise-free variance;
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
    deviation by a soft signed square root (``soft_signed_sqrt``): the plain root where the
-   variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise
-   (``variance_noise_sd``) from 0, linear in it below. A root of a zero-mean estimate is what
+   variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise where
+   the markers' true deltas are equal (``variance_noise_sd(..., at_zero_spread=True)``, the
+   short box's, on the hold too) from 0, linear in it below. The threshold is a property of
+   the noise model, not of the realised deviations: computed from them it rose with each
+   frame's own noise and the roots' mean leaned low (-1.6 % of gamma on off-chord faces). On
+   the hold the long box cuts the variance's noise while the threshold, and so the root's
+   slope there, stay the short box's (face-to-face sd at 3 trials and 0.05 mm 4.1 -> 3.4 % on
+   off-chord faces, 4.6 -> 3.6 % on bowed ones, 40 faces of 60 markers). A root of a zero-mean estimate is what
    costs the most: where the true spread is 0 (the hold, the rest) the signed root
    sign(v) sqrt(|v|) is unbiased but turns noise of sd tau into errors of sd ~0.9 sqrt(tau),
    and no smoothing helps (a longer box divides tau and the number of independent values
@@ -61,11 +69,12 @@ every later frame, so their error is a constant of each marker's curve that no a
 time removes: its expected variance is subtracted, its realisation is not; pooling the other
 takes' rest frames, as the session analysis does, shrinks it 16-fold); the soft root, which leans
 low where the true spread is positive but below ~3 tau (the edges of the ramps, the settling at
-the top: -1 to -3 % of gamma on 3-trial takes at 0.05 mm); the box, which smooths away part of
-the spread between curves that step at different sub-step times (-1.5 % on faces with
-per-marker dead times); and a remaining negative lean of a few % with few markers (30) at 3
-trials and 0.05 mm, where the variance estimate on the hold comes out slightly below its noise-free
-value and its noise is skewed (a few small markers dominate it). Where the true spread is below
+the top: -1 to -3 % of gamma on 3-trial takes at 0.05 mm: E sqrt is at most ~0.4 sqrt(tau)
+short of sqrt(V) for V in (0, 3 tau), and no odd function of the estimate does much better);
+the box, which smooths away part of the spread between curves that step at different sub-step
+times (-1.6 % on noise-free off-chord faces, whose markers have their own dead times and no lag,
+so their curves are staircases stepping at different frames); and the skew of the variance's
+noise with few markers (a few small markers dominate it). Where the true spread is below
 the noise of the smallest markers' normalised curves the estimate is no better than 0 to 2 x the
 truth (docs/indices.md).
 """
@@ -84,6 +93,7 @@ NORMALISE_S = 0.25  # smoothing of the chord for finding its plateau (3 s hold i
 MIN_NOISE_DOF = 30  # per marker, below this the still frames do not measure the noise
 PATH_DEGREE = 3  # the perpendicular part of a path as a polynomial of this degree in p
 SOFT_ROOT = 3.0  # the spread's root is linear below this many sd of its variance's noise
+HOLD_BOX_S = 0.5  # the box of the deltas deep in the settled hold (flat there)
 
 
 @dataclass(frozen=True)
@@ -386,14 +396,22 @@ def soft_signed_sqrt(v: np.ndarray, threshold: np.ndarray) -> np.ndarray:
     return np.where(np.abs(v) >= thr, signed_sqrt(v), lin)
 
 
-def variance_noise_sd(d: np.ndarray, nv: np.ndarray, box: int, smooth: int) -> np.ndarray:
+def variance_noise_sd(d: np.ndarray, nv: np.ndarray, box: int, smooth: int, *,
+                      at_zero_spread: bool = False) -> np.ndarray:
     """(n_frames,) sd of the noise of the per-frame variance over markers of box-averaged deltas
     ``d`` (n_frames, M) less their noise ``nv`` (n_frames, M), once averaged over ``smooth``
     frames: for independent errors e_m of variance nv_m, var(sum_m (d_m - mean)^2 / (M - 1)) =
     (2 sum nv^2 + 4 sum (d_m - mean)^2 nv) / (M - 1)^2, and a box of ``box`` frames makes
     successive errors correlated (rho(k) = 1 - |k| / box), which the average over ``smooth``
     frames keeps (sum over its pairs of rho^2 and rho). (d_m - mean)^2 is taken less nv_m, its
-    own noise's share."""
+    own noise's share.
+
+    ``at_zero_spread``: the first term only, the sd where the markers' true deltas are equal (the
+    null the soft root's threshold asks about). It depends on the noise model alone, not on the
+    realised deviations, which carry the very noise the threshold judges: with them in, a frame
+    whose noise came out high gets a higher threshold (a flatter root) and one whose noise came
+    out low a steeper one, and the mean of the roots leans low (-1.6 % of gamma on 3-trial
+    off-chord faces at 0.05 mm, benchmarks/index_monte_carlo.md)."""
     lags = np.arange(-(smooth - 1), smooth)
     pairs = smooth - np.abs(lags)
     rho = np.maximum(0.0, 1.0 - np.abs(lags) / max(box, 1))
@@ -401,16 +419,18 @@ def variance_noise_sd(d: np.ndarray, nv: np.ndarray, box: int, smooth: int) -> n
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         m = np.sum(np.isfinite(d) & np.isfinite(nv), axis=1).astype(float)
-        # the true deviations' squares: the noisy ones less their noise (else counted twice)
-        dev2 = (d - np.nanmean(d, axis=1, keepdims=True)) ** 2 - nv
-        v = (2 * f2 * np.nansum(nv**2, axis=1)
-             + np.maximum(4 * f1 * np.nansum(dev2 * nv, axis=1), 0.0)) / (m - 1) ** 2
+        v = 2 * f2 * np.nansum(nv**2, axis=1)
+        if not at_zero_spread:
+            # the true deviations' squares: the noisy ones less their noise (else counted twice)
+            dev2 = (d - np.nanmean(d, axis=1, keepdims=True)) ** 2 - nv
+            v = v + np.maximum(4 * f1 * np.nansum(dev2 * nv, axis=1), 0.0)
+        v = v / (m - 1) ** 2
     return smoothed(np.sqrt(np.where(m > 1, v, np.nan)), smooth)
 
 
 def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndarray,
                            timing: ScheduleTiming, fps: float, noise_cov: np.ndarray, *,
-                           box_s: float = 0.1, smooth_s: float = 0.1,
+                           box_s: float = 0.1, smooth_s: float = 0.1, hold_box_s: float = HOLD_BOX_S,
                            rest_prior: tuple[np.ndarray, np.ndarray] | None = None
                            ) -> tuple[float, PathChord]:
     """The paper's dyssynchrony on noise-free positions, estimated (module docstring).
@@ -418,9 +438,13 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     mean (n_frames, M, 3) mm trial means; n_trials (n_frames, M); keep (M,) bool; noise_cov
     (M, 3, 3) mm^2 per trial and frame; rest_prior: see :func:`path_chord`. Each delta is
     averaged over a centred box of ``box_s`` (its white noise down by the box's length; a box far
-    shorter than a ramp barely changes the spread between markers), the variance over markers
-    less its noise averaged over ``smooth_s``. Returns (gamma, the path chords).
+    shorter than a ramp barely changes the spread between markers), and over ``hold_box_s`` where
+    that box lies inside the settled hold at the top command (the deltas are flat there), the
+    variance over markers less its noise averaged over ``smooth_s``. Returns (gamma, the path
+    chords).
     """
+    from scipy.ndimage import minimum_filter1d
+
     pc = path_chord(mean, n_trials, timing, fps, noise_cov, rest_prior)
     n = np.shape(mean)[0]
     keep = np.asarray(keep, bool) & np.any(np.isfinite(pc.delta), axis=0)
@@ -430,16 +454,26 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     inside = np.zeros(n, bool)
     inside[sched] = True
     frames = max(1, int(round(box_s * fps)))
+    smooth = max(1, int(round(smooth_s * fps)))
     pc_in = replace(pc, delta=np.where(inside[:, None], pc.delta, np.nan))
     d, _ = box_mean(pc_in.delta, frames)
     nv = delta_noise_variance(pc_in, n_trials, frames)
+    # the soft root's threshold: the short box's noise at zero spread, also on the hold (a
+    # threshold from the long box there would steepen the root as much as the box cuts the noise)
+    tau = variance_noise_sd(d[sched][:, keep], nv[sched][:, keep], frames, smooth,
+                            at_zero_spread=True)
+    hold = hold_frames(n, timing, fps) & inside
+    long = max(frames, int(round(hold_box_s * fps)))
+    deep = minimum_filter1d(hold.astype(np.uint8), long + smooth + 1, mode="constant").astype(bool)
+    if long > frames and deep.any():
+        pc_h = replace(pc, delta=np.where(hold[:, None], pc.delta, np.nan))
+        d = np.where(deep[:, None], box_mean(pc_h.delta, long)[0], d)
+        nv = np.where(deep[:, None], delta_noise_variance(pc_h, n_trials, long), nv)
     d, nv = d[sched][:, keep], nv[sched][:, keep]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         var = np.nanvar(d, axis=1, ddof=1) - np.nanmean(nv, axis=1)
-    smooth = max(1, int(round(smooth_s * fps)))
     var = smoothed(var, smooth)
-    tau = variance_noise_sd(d, nv, frames, smooth)
     # the mean of the (soft) signed roots is unbiased where the spread is 0 or well above its
     # noise; it is negative only where the spread is lost in the noise, and a standard deviation
     # is reported as such: floored at 0

@@ -206,15 +206,16 @@ def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
     trial shifts), anisotropic noise, the take's own rest frames only (6 per trial): the
     corrected indices against the paper's recipe on the noise-free trials (a plain second
     implementation). The literal formula on the noisy data is 1.5 to 5 times the truth; the
-    estimate is within 10 % on average and on the typical face, on every face within 15 % at
-    10 trials or 0.02 mm and within 30 % at 3 trials and 0.05 mm (measured: worst 13 % and 24 %;
-    there it leans 6-9 % low, the rest reference and the few markers its limit). Linearity
-    within 0.02 every time."""
+    estimate is within 7 % on average and 8 % on the typical face, on every face within 15 % at
+    10 trials or 0.02 mm and within 20 % at 3 trials and 0.05 mm (measured: mean -5.9 % at worst,
+    median 6.2 %, worst faces 12.2 % and 17.2 %; before the soft root's threshold was the noise
+    model's at zero spread and the hold had its long box: -8.8 %, 9.8 %, 13.2 % and 23.5 %).
+    Linearity within 0.02 every time."""
     rel, lin, raw = corrected_vs_truth(family, K, sigma, range(20))
     assert np.all(raw > 0.5), raw  # the noise the correction has to remove
-    assert abs(np.mean(rel)) < 0.10, rel
-    assert np.median(np.abs(rel)) < 0.11, rel
-    assert np.max(np.abs(rel)) < (0.15 if (K == 10 or sigma == 0.02) else 0.30), rel
+    assert abs(np.mean(rel)) < 0.07, rel
+    assert np.median(np.abs(rel)) < 0.08, rel
+    assert np.max(np.abs(rel)) < (0.15 if (K == 10 or sigma == 0.02) else 0.20), rel
     assert abs(np.mean(lin)) < 0.005 and np.max(np.abs(lin)) < 0.02, lin
 
 
@@ -223,17 +224,19 @@ def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
 def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, sigma):
     """The session analysis pools each take's rest reference with the face's rest in the other
     DUs' takes (15 here, each K trials x 6 frames): 20 faces of 60 markers per case. Every single
-    face within 10 % of the recipe on its noise-free trials (measured: worst 9.7 %, offchord faces
-    at 3 trials and 0.035 mm), the mean within 5 %; at 3 trials and 0.05 mm 80 % of the faces
-    (measured: 85-100 %), none beyond 20 %, the mean within 8 % (the soft root and the box lean
-    low there on faces with per-marker dead times: -5 %)."""
+    face within 10 % of the recipe on its noise-free trials (measured: worst 8.0 %, off-chord
+    faces at 3 trials and 0.035 mm), the mean within 4 % (measured -3.2 % at worst); at 3 trials
+    and 0.05 mm 80 % of the faces (measured: 85-100 %), none beyond 12 % (measured 10.8 %; 14.5 %
+    with the earlier threshold and hold), the mean within 5 % (measured -3.9 % on off-chord faces,
+    whose curves are staircases stepping at their own dead times: the box smooths part of their
+    spread away, -1.6 % on noise-free data, and the soft root leans low on the ramps' ends)."""
     rel = corrected_vs_truth(family, K, sigma, range(20), markers=60, prior_takes=15)[0]
     if (K, sigma) == (3, 0.05):
-        assert np.mean(np.abs(rel) < 0.10) >= 0.8 and np.max(np.abs(rel)) < 0.2, rel
-        assert abs(np.mean(rel)) < 0.08, rel
+        assert np.mean(np.abs(rel) < 0.10) >= 0.8 and np.max(np.abs(rel)) < 0.12, rel
+        assert abs(np.mean(rel)) < 0.05, rel
     else:
         assert np.max(np.abs(rel)) < 0.10, rel
-        assert abs(np.mean(rel)) < 0.05, rel
+        assert abs(np.mean(rel)) < 0.04, rel
 
 
 def test_capture_noise_from_still_frames_ignores_trial_differences():
@@ -435,9 +438,10 @@ def test_corrected_fits_against_the_recipe_on_noise_free_trials(family, K, sigma
 
 
 def test_variance_noise_sd_matches_simulated_spread_noise():
-    """The noise sd of the per-frame variance over markers (the soft root's scale) against the
-    sd of that variance over many frames of simulated box-averaged noise, with and without a
-    true spread between the markers; heteroscedastic markers (0.15-3 mm, 3 trials, 0.05 mm)."""
+    """The noise sd of the per-frame variance over markers against the sd of that variance over
+    many frames of simulated box-averaged noise, with and without a true spread between the
+    markers; heteroscedastic markers (0.15-3 mm, 3 trials, 0.05 mm). The soft root's threshold
+    (``at_zero_spread``) is the sd without a spread whatever the markers' true spread."""
     from scipy.ndimage import uniform_filter1d
 
     from mocap.analysis.noise_corrected import variance_noise_sd
@@ -445,13 +449,17 @@ def test_variance_noise_sd_matches_simulated_spread_noise():
     rng = np.random.default_rng(5)
     M, n, W = 30, 6000, 12
     sd = 0.029 / np.exp(rng.uniform(np.log(0.15), np.log(3.0), M))
+    measured, tau, null = [], [], []
     for offset in (np.zeros(M), rng.normal(0, 0.05, M)):
         d = offset[None] + uniform_filter1d(rng.normal(size=(n, M)) * sd, W, axis=0)
         nv = np.broadcast_to(sd**2 / W, (n, M))
         v = np.var(d, axis=1, ddof=1) - nv.mean(axis=1)
-        v = uniform_filter1d(v, W)[100:-100]
-        tau = variance_noise_sd(d, nv, W, W)[100:-100]
-        assert np.median(tau) == pytest.approx(v.std(), rel=0.15)
+        measured.append(uniform_filter1d(v, W)[100:-100].std())
+        tau.append(np.median(variance_noise_sd(d, nv, W, W)[100:-100]))
+        null.append(np.median(variance_noise_sd(d, nv, W, W, at_zero_spread=True)[100:-100]))
+    assert tau == pytest.approx(measured, rel=0.15)
+    assert null == pytest.approx([measured[0]] * 2, rel=0.15)
+    assert measured[1] > 1.5 * measured[0]  # the spread's cross term is real, and left out
 
 
 def test_delta_noise_variance_matches_the_realised_error_at_rest():
