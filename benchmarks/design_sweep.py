@@ -110,7 +110,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         for cond, noise, trial_var, plays in CONDITIONS:
             play_seed = [seed, PLANS.index(plan), 0]
 
-            def play(rows, k=0, noise=noise, trial_var=trial_var):
+            def play(rows, k=0, noise=noise, trial_var=trial_var, ref=ref, play_seed=play_seed):
                 # (true, measured): the measured take teaches the refinement, the true one scores
                 Xt, X = play_virtual_take(
                     vcfg, face, rows, ref.end_s + 0.25, noise,
