@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 H_STEP = 0.5  # command units between table columns
-H_MAX = 100.0  # largest half-width in the table (PI widths r <= H_MAX / 2)
+H_MAX = 165.0  # largest half-width in the table (PI widths r <= H_MAX / 2)
 HALFWIDTHS = np.arange(0.0, H_MAX + 1e-9, H_STEP)  # (H,)
 
 
