@@ -856,7 +856,8 @@ def with_drift(model: FaceModel, k: float) -> FaceModel:
 
 def base_report(model: FaceModel) -> dict:
     """What the base model holds, per DU: the path bow (|B_1| / |D|, median), the loop width
-    (median, command units), the PI density, and the SD of the takes' bias shifts."""
+    (median, command units), the PI density and branch parameters (mix, kappa), and the SD of the
+    takes' bias shifts."""
     from mocap.analysis.face_model import DENSITY_FRACTIONS, bow_ratio
 
     out: dict = {}
@@ -869,6 +870,8 @@ def base_report(model: FaceModel) -> dict:
         out["density_fractions"] = [float(f) for f in DENSITY_FRACTIONS]
         out["density"] = {int(d): [round(float(q), 4) for q in model.density[n]]
                           for n, d in enumerate(model.du_ids)}
+        out["branch_mix_kappa"] = {int(d): [round(float(v), 4) for v in model.branch[n]]
+                                   for n, d in enumerate(model.du_ids)}
     if model.shifts_takes and model.take_shifts:
         v = np.array([x for sh in model.take_shifts.values() for x in sh.values()], float)
         out["take_shift_sd"] = round(float(np.std(v)), 4)

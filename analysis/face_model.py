@@ -4,13 +4,21 @@ The paper's static model, with a rule for reversals, plus composable effects
 (:mod:`mocap.analysis.model_effects`). For DU n and marker m (summed over the DUs of a take)::
 
     a_n(t)   = actuator-stage effects of the command c_n(t)       (identity in the base model)
-    w_nm(t)  = sum_f q_nf play_{r_nm f}[a_n](t)   Prandtl-Ishlinskii operator with a DENSITY: play
-               half-widths r_nm f on the grid f in DENSITY_FRACTIONS (0, .25, ..., 2), weights
-               q_nf >= 0 summing to 1 per DU (identified; the paper-model's equal plays at
-               f = 0, .5, 1, 1.5, 2 are the default), from rest (r = 0 without ``hysteresis``)
-    y_nm(t)  = (S(w) - S(0)) / (S(255) - S(0)),  S(w) = 1 / (1 + exp(-alpha_nm (w - beta_nm - s)))
-               s = the effects' bias shifts for the take's trial + the take's own shift s_kn
-               (``takeshift``: one per take and DU, identified on the take itself)
+    P_nmf(t) = play_{r_nm f}[a_n](t)      plays of half-widths r_nm f, f in DENSITY_FRACTIONS
+               (0, .25, ..., 2), from rest (r = 0 without ``hysteresis``)
+    w_nm(t)  = sum_f q_nf P_nmf(t)        their Prandtl-Ishlinskii operator with a DENSITY q_nf >= 0
+               summing to 1 per DU (identified; the paper-model's equal plays at f = 0, .5, 1,
+               1.5, 2 are the default)
+    y_nm(t)  = sum_f q_nf L(mix_n w + (1 - mix_n) P_nmf;
+                            alpha_nm, beta_nm + s + kappa_n (f - fbar_n) r_nm)
+               L(x; alpha, b) = (S(x) - S(0)) / (S(255) - S(0)),  S(x) = 1 / (1 + exp(-alpha (x - b)))
+               fbar_n = sum_f q_nf f;  s = the effects' bias shifts for the take's trial + the
+               take's own shift s_kn (``takeshift``: one per take and DU, identified on the take)
+               (mix, kappa) per DU, the BRANCH parameters: with mix = 1, kappa = 0 this is the
+               logistic of the PI operator, L(w); with mix = 0 a density-weighted mean of
+               sigmoids of plays (a Preisach operator: on each width, relays whose centres are
+               spread logistically around that play's own centre), kappa > 0 putting the wide plays' centres later (a shallow
+               forward branch and a steep backward one), kappa < 0 the other way
     y       -> interact(y)                                   (several DUs at once)
     d_m(t)   = sum_n [y_nm D_nm + sum_k b_k(y_nm) B_nmk]      each marker's own path
                (``curvature``: b = 4 y (1 - y), 6 sqrt 3 y (1 - y) (1 - 2 y), 16 y^2 (1 - y)^2)
@@ -19,8 +27,8 @@ The paper's static model, with a rule for reversals, plus composable effects
     x_m(t)   = rest_m + output(d_m(t))                        (``saturation``)
 
 The base model of the discrepancy workflow (``model_effects.BASE``) is ``hysteresis`` (the
-density), ``curvature`` (each marker's path, any quartic in y through rest: bows, paths that end
-off the chord, a per-DU compression of the displacement) and ``takeshift``: what every face has,
+density and the branch parameters), ``curvature`` (each marker's path, any quartic in y through
+rest: bows, paths that end off the chord, a per-DU compression of the displacement) and ``takeshift``: what every face has,
 so that a face with no missing effect fits to its noise floor whatever its hysteresis operator
 and path shape.
 
@@ -29,7 +37,9 @@ the logistic of about c - r sum q f and the backward one of about c + r sum q f 
 2 r sum_f q_f f); after a reversal inside the range the response moves at once with the weight
 of the narrow plays and steepens as wider plays release (Preisach minor loops); a density on one
 width is a branch play (flat after a reversal until the other branch), a spread one follows
-smooth (Bouc-Wen-like) loops.
+smooth (Bouc-Wen-like) loops. The branch parameters shape the two branches apart: a Preisach
+face whose wide relays switch later (shallow forward, steep backward branch) is
+mix ~ 0.2, kappa ~ 0.5; a single sigmoid of the PI output has one steepness on both.
 
 Time: commands are sampled per FORMAT.md on a grid ``OVERSAMPLE`` times finer than the frames
 (for the actuator dynamics and the plays); responses are read at the frames.
@@ -48,9 +58,12 @@ from mocap.analysis.play_kernel import pi_logistic_from_table, play_table
 from mocap.schedules import sample_commands
 
 OVERSAMPLE = 4
-R_MAX = 48.0  # largest play width r, command units (the table holds half-widths up to 2 r)
+R_MAX = 80.0  # largest play width r, command units (the table holds half-widths up to 2 r); the
+#               simulator's DU 4 has markers with loop half-widths of 77 (48 cut them: a
+#               branch-play face's held-out RMS 1.69 -> 1.22 x the noise floor with 80)
 # the PI density's grid: play half-widths / r; the paper-model's equal plays sit on every second
 DENSITY_FRACTIONS = np.round(np.arange(0.0, 2.0001, 0.25), 6)  # (F,)
+PI_BRANCH = np.array([1.0, 0.0])  # (mix, kappa) of the PI form: one sigmoid of the PI output
 EQUAL_DENSITY = np.where(np.isin(DENSITY_FRACTIONS, PLAY_FRACTIONS), 1.0 / PLAY_FRACTIONS.size, 0.0)
 
 
@@ -97,6 +110,8 @@ class FaceModel:
     D : (N, M, 3) mm, the displacement at full response.
     B : (N, M, K, 3) mm, the path-basis vectors (K = total extra bases of the effects).
     effects : the model's effects (the base model of the paper has ``hysteresis`` only).
+    density : (N, F) each DU's weights of the plays at DENSITY_FRACTIONS (sum 1).
+    branch : (N, 2) each DU's (mix, kappa), dimensionless (default PI_BRANCH: L of the PI output).
     """
 
     fps: float
@@ -115,10 +130,13 @@ class FaceModel:
     take_shifts: dict = field(default_factory=dict)  # take name -> {DU id: bias shift}
     pairs: tuple[tuple[int, int], ...] = ()
     C: np.ndarray | None = None
+    branch: np.ndarray | None = None  # (N, 2) per DU: (mix, kappa), see the module docstring
 
     def __post_init__(self) -> None:
         if self.density is None:
             self.density = np.tile(EQUAL_DENSITY, (len(self.du_ids), 1))
+        if self.branch is None:
+            self.branch = np.tile(PI_BRANCH, (len(self.du_ids), 1))
         if self.C is None:
             self.C = np.zeros((len(self.pairs), len(self.marker_names), 3))
 
@@ -171,7 +189,8 @@ class FaceModel:
                 continue
             y[:, j, act] = pi_logistic_from_table(tables[j], self.r[n, act], self.alpha[n, act],
                                                   self.beta[n, act], shift, DENSITY_FRACTIONS,
-                                                  weights=self.density[n])
+                                                  weights=self.density[n], mix=self.branch[n, 0],
+                                                  kappa=self.branch[n, 1])
         return y
 
     def displacement_from_response(self, y: np.ndarray, dus) -> np.ndarray:

@@ -187,6 +187,9 @@ class DuPlant:
     command units.  alpha, beta : (Ma,) its logistic (beta with the trial's bias shift).
     tau_s : actuator lag (0: none).  backlash : dead band half-width, command units (0: none).
     weights : (P,) the plays' weights (the model's PI density; None: equal).
+    mix, kappa : the model's branch parameters (:mod:`mocap.analysis.face_model`; 1 and 0: one
+        sigmoid of the PI output).  offsets : (Ma, P) each play's sigmoid-centre offset
+        kappa (f - fbar) r, command units (None: 0).
     """
 
     du: int
@@ -197,6 +200,21 @@ class DuPlant:
     tau_s: float
     backlash: float
     weights: np.ndarray | None = None
+    mix: float = 1.0
+    offsets: np.ndarray | None = None
+
+    def response(self, plays: np.ndarray) -> np.ndarray:
+        """Normalised responses (..., Ma) of play outputs (..., Ma, P), command units: the
+        face model's, sum_p q_p L(mix w + (1 - mix) play_p; alpha, beta + offset_p)."""
+        q = (np.full(self.halfwidths.shape[1], 1.0 / self.halfwidths.shape[1])
+             if self.weights is None else self.weights)
+        w = np.einsum("...mp,p->...m", plays, q)
+        if self.mix == 1.0 and self.offsets is None:
+            return normalized_logistic(w, self.alpha, self.beta)
+        x = self.mix * w[..., None] + (1.0 - self.mix) * plays
+        off = 0.0 if self.offsets is None else self.offsets
+        y = normalized_logistic(x, self.alpha[:, None], self.beta[:, None] + off)
+        return np.einsum("...mp,p->...m", y, q)
 
 
 @dataclass
@@ -222,10 +240,15 @@ def plants(model: FaceModel, dus, trial: int = 1) -> list[DuPlant]:
         act = np.flatnonzero(model.active[n])
         q = model.density[n]
         keep = q > 1e-6  # plays of weight 0 need no state
+        mix, kappa = (float(v) for v in model.branch[n])
+        fbar = float(q @ DENSITY_FRACTIONS)
+        offsets = (None if (mix == 1.0 and kappa == 0.0) else
+                   kappa * (DENSITY_FRACTIONS[None, keep] - fbar) * model.r[n, act, None])
         out.append(DuPlant(int(du), act, model.r[n, act, None] * DENSITY_FRACTIONS[None, keep],
                            model.alpha[n, act], model.beta[n, act] + shift,
                            float(lag.value) if lag is not None else 0.0,
-                           float(bl.value) if bl is not None else 0.0, q[keep] / q[keep].sum()))
+                           float(bl.value) if bl is not None else 0.0, q[keep] / q[keep].sum(),
+                           mix, offsets))
     return out
 
 
@@ -272,9 +295,7 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
             a = np.broadcast_to(ch[:, None], (C, s.size))
         b = np.clip(b0[:, None], a - p.backlash, a + p.backlash) if p.backlash > 0 else a
         plays = np.clip(pl0[:, None], b[..., None, None] - hw[:, None], b[..., None, None] + hw[:, None])
-        w = (plays[:, :J].mean(axis=-1) if p.weights is None
-             else np.einsum("cjmp,p->cjm", plays[:, :J], p.weights))
-        ys.append(normalized_logistic(w, p.alpha, p.beta))  # (C, J, Ma)
+        ys.append(p.response(plays[:, :J]))  # (C, J, Ma)
         a0, b0, pl0 = a[:, -1].copy(), b[:, -1].copy(), plays[:, -1]
         if h == 0:
             first = (a0, b0, pl0)

@@ -27,6 +27,7 @@ from mocap.analysis.face_model import (
     DENSITY_FRACTIONS,
     EQUAL_DENSITY,
     OVERSAMPLE,
+    PI_BRANCH,
     R_MAX,
     FaceModel,
     actuator_effects,
@@ -38,6 +39,13 @@ from mocap.analysis.model_effects import Effect
 from mocap.analysis.play_kernel import H_STEP, pi_logistic_from_table
 
 BETA_STARTS = (60.0, 128.0, 196.0)
+# where a cold fit starts the branch parameters (mix, kappa): the PI form (mix = 1, where their
+# first derivatives vanish until the density moves) and off it (0.75), so that a Gauss-Newton
+# step can move them either way; the better training fit is kept (from 0.75 alone: 1.03 x the
+# noise floor on a PI face, 1.08 on a Preisach one; from 0.5 the PI face stayed at mix
+# 0.53-0.64, 1.11 x; the fit is not convex in them)
+BRANCH_STARTS = (np.array([1.0, 0.0]), np.array([0.75, 0.0]))
+BRANCH_START = BRANCH_STARTS[1]
 
 
 @dataclass
@@ -132,9 +140,11 @@ class _Block:
     wt: np.ndarray
     q: np.ndarray | None = None
     trial: np.ndarray | None = None
+    branch: np.ndarray = field(default_factory=lambda: PI_BRANCH.copy())
 
     def sub(self, cols) -> "_Block":
-        return _Block(self.P, self.shift, self.v[:, cols], self.wt[:, cols], self.q, self.trial)
+        return _Block(self.P, self.shift, self.v[:, cols], self.wt[:, cols], self.q, self.trial,
+                      self.branch)
 
 
 def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray,
@@ -175,8 +185,9 @@ def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray,
 def _responses(blk: _Block, p: np.ndarray, hyst: bool, derivatives: bool = False):
     """y (S, M) and, with ``derivatives``, dy/d(alpha, beta[, r]) (S, M, P), analytically."""
     r = p[:, 2] if hyst else np.zeros(p.shape[0])
+    mix, kappa = (blk.branch if hyst else PI_BRANCH)
     out = pi_logistic_from_table(blk.P, r, p[:, 0], p[:, 1], blk.shift, DENSITY_FRACTIONS,
-                                 derivatives, weights=blk.q)
+                                 derivatives, weights=blk.q, mix=mix, kappa=kappa)
     if not derivatives:
         return out
     y, dy = out
@@ -248,7 +259,7 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
 
 def empty_model(data: ModelData, effects) -> FaceModel:
     N, M = len(data.du_ids), len(data.marker_names)
-    return FaceModel(fps=data.fps, marker_names=data.marker_names, rest_mm=data.rest_mm,
+    return FaceModel(branch=np.tile(BRANCH_START, (N, 1)), fps=data.fps, marker_names=data.marker_names, rest_mm=data.rest_mm,
                      du_ids=data.du_ids, active=data.active.copy(),
                      alpha=np.full((N, M), 0.03), beta=np.full((N, M), 128.0),
                      r=np.where(any(type(e).frees_r for e in effects), 8.0, 0.0) * np.ones((N, M)),
@@ -262,7 +273,8 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
 
     Curves (alpha, beta[, r], D, B) on the single-DU takes (:func:`_fit_all_curves`); with
     ``hysteresis``, each DU's PI density over :data:`DENSITY_FRACTIONS` (non-negative, summing to
-    1) by projected Gauss-Newton steps; with ``takeshift``, each take's bias shift per DU
+    1) and branch parameters (mix, kappa) by projected Gauss-Newton steps, pulled towards the
+    DUs' shared ones (:func:`_update_density`); with ``takeshift``, each take's bias shift per DU
     (:func:`conditional_shifts`, centred per DU into the biases); these alternate with the
     curves (three rounds from cold, two from a warm start with ``iters`` >= 30; one round, the
     density and shifts kept from ``warm``, inside profiles). With a pairwise effect
@@ -273,39 +285,54 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
     hyst = any(type(e).frees_r for e in effects)
     shifting = any(type(e).name == "takeshift" for e in effects)
     density = None
+    branch = None
     shifts: dict = {}
     if warm is not None:
         density = warm.density.copy()
+        branch = warm.branch.copy()
         if shifting:
             shifts = dict(warm.take_shifts)
     if rounds is None:
         rounds = 1
         if hyst or shifting:
             rounds = 3 if warm is None else (2 if iters >= 30 else 1)
-    model = None
-    for rnd in range(rounds):
-        model = _fit_all_curves(data, effects, takes, model if rnd else warm, iters, density, shifts)
-        if rnd == rounds - 1:
-            break
-        if hyst:
-            density = _update_density(data, model, takes)
-            model.density = density
-        if shifting:
-            shifts = _update_shifts(data, model, takes)
-            model.take_shifts = shifts
+
+    def run(density, branch, shifts):
+        model = None
+        for rnd in range(rounds):
+            model = _fit_all_curves(data, effects, takes, model if rnd else warm, iters, density,
+                                    shifts, branch)
+            if rnd == rounds - 1:
+                break
+            if hyst:
+                density, branch = _update_density(data, model, takes)
+                model.density, model.branch = density, branch
+            if shifting:
+                shifts = _update_shifts(data, model, takes)
+                model.take_shifts = shifts
+        return model
+
+    if warm is None and hyst:  # the branch parameters from each start; the best training fit
+        fits = [run(density, np.tile(b, (len(data.du_ids), 1)), shifts) for b in BRANCH_STARTS]
+        model = fits[int(np.argmin([sse(data, m, takes)[0] for m in fits]))]
+    else:
+        model = run(density, branch, shifts)
     if any(type(e).pairwise for e in effects):
         _fit_pairs(data, model, takes)
     return model
 
 
 def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, iters: int,
-                    density: np.ndarray | None, shifts: dict) -> FaceModel:
+                    density: np.ndarray | None, shifts: dict,
+                    branch: np.ndarray | None = None) -> FaceModel:
     """Every DU's curves, the density (N, F) given (None: equal plays) and the take shifts
     ({take name: {DU: shift}}) held; see :func:`fit_curves`."""
     model = empty_model(data, effects)
     model.take_shifts = dict(shifts)
     if density is not None:
         model.density = density.copy()
+    if branch is not None:
+        model.branch = branch.copy()
     hyst = model.hysteresis
     K = n_bases(effects)
     for n, du in enumerate(data.du_ids):
@@ -317,6 +344,7 @@ def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, ite
             model.active[n] = False
             continue
         blk.q = model.density[n]
+        blk.branch = model.branch[n]
         strong = data.strong[n, act]
         if not strong.any():
             strong = np.ones(act.size, bool)
@@ -334,7 +362,7 @@ def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, ite
             p0 = np.column_stack([np.full(ns * starts, 0.03), np.repeat(BETA_STARTS, ns),
                                   np.full(ns * starts, 8.0 if hyst else 0.0)])
             tiled = _Block(sb.P, sb.shift, np.tile(sb.v, (1, starts, 1)), np.tile(sb.wt, (1, starts)),
-                           sb.q, sb.trial)
+                           sb.q, sb.trial, sb.branch)
             p_all, coef_all, cost_all = _lm_curves(tiled, p0, effects, hyst, iters)
             best = np.argmin(cost_all.reshape(starts, ns), axis=0)
             pick = best * ns + np.arange(ns)
@@ -368,6 +396,7 @@ def _du_parts(data: ModelData, model: FaceModel, takes, n: int, du: int):
     if blk is None:
         return None
     blk.q = model.density[n]
+    blk.branch = model.branch[n]
     p = np.column_stack([model.alpha[n, act], model.beta[n, act], model.r[n, act]])
     y, dy = _responses(blk, p, True, derivatives=True)
     coef = np.concatenate([model.D[n, act][:, None], model.B[n, act]], axis=1)  # (Ms, K+1, 3)
@@ -382,53 +411,149 @@ def _du_parts(data: ModelData, model: FaceModel, takes, n: int, du: int):
     return blk, p, act, y, dy, g, blk.v - pred
 
 
-def _update_density(data: ModelData, model: FaceModel, takes) -> np.ndarray:
-    """One projected Gauss-Newton step of each DU's PI density q (F,) (q >= 0, sum 1), with a
-    halving line search on the training cost; the curves held."""
-    from scipy.optimize import nnls
+SHARED_PULL = 0.05  # a DU's density is pulled towards the DUs' shared one with this x its
+#                    data's mean curvature (where its own takes say nothing, the shared one holds)
 
-    out = model.density.copy()
+
+BRANCH_BOUNDS = ((0.0, 1.0), (-1.5, 1.5))  # (mix, kappa)
+
+
+def _mix_terms(blk: _Block, p: np.ndarray, q: np.ndarray, branch: np.ndarray):
+    """The response y (S, Ms) and its Jacobian J (S, F + 2, Ms) in the DU's density q (F,) and
+    branch parameters (mix, kappa), the curves p (Ms, 3) held (numpy; the fitter's density step).
+
+    y = sum_f q_f L(x_f; alpha, b_f), x_f = mix w + (1 - mix) P_f, w = sum_g q_g P_g,
+    b_f = beta + s + kappa (f - fbar) r, fbar = sum_g q_g f_g."""
     fr = DENSITY_FRACTIONS
+    H = blk.P.shape[1]
+    r = p[:, 2]
+    x = np.clip(fr[:, None] * r[None, :] / H_STEP, 0.0, H - 1 - 1e-9)  # (F, Ms)
+    i0 = np.floor(x).astype(np.int64)
+    lam = x - i0
+    Q = blk.P[:, i0] * (1 - lam) + blk.P[:, np.minimum(i0 + 1, H - 1)] * lam  # (S, F, Ms)
+    mix, kappa = float(branch[0]), float(branch[1])
+    w = np.einsum("sfm,f->sm", Q, q)
+    fbar = float(q @ fr)
+    xf = mix * w[:, None] + (1.0 - mix) * Q
+    off = kappa * (fr - fbar)  # (F,)
+    al = p[None, None, :, 0]
+    bb = p[None, None, :, 1] + blk.shift[:, None, None] + off[None, :, None] * r[None, None]
+    sg = 1.0 / (1.0 + np.exp(np.clip(-al * (xf - bb), -700, 700)))
+    lo = 1.0 / (1.0 + np.exp(np.clip(al * bb, -700, 700)))
+    hi = 1.0 / (1.0 + np.exp(np.clip(-al * (255.0 - bb), -700, 700)))
+    span = np.maximum(hi - lo, 1e-12)
+    L = (sg - lo) / span
+    dx = al * sg * (1.0 - sg) / span
+    db = (-al * sg * (1 - sg) + al * lo * (1 - lo)) / span - L / span * (-al * hi * (1 - hi) + al * lo * (1 - lo))
+    y = np.einsum("sfm,f->sm", L, q)
+    Gx = np.einsum("sfm,f->sm", dx, q)
+    Gb = np.einsum("sfm,f->sm", db, q)
+    Jq = L + mix * Q * Gx[:, None] - kappa * fr[None, :, None] * r[None, None] * Gb[:, None]
+    Jmix = np.einsum("sfm,f->sm", dx * (w[:, None] - Q), q)
+    Jkap = np.einsum("sfm,f->sm", db * (fr - fbar)[None, :, None], q) * r[None]
+    return y, np.concatenate([Jq, Jmix[:, None], Jkap[:, None]], axis=1)
+
+
+def _density_problem(data: ModelData, model: FaceModel, takes, n: int, du: int):
+    """A DU's Gauss-Newton model of the training cost in theta = (q (F,), mix, kappa):
+    cost ~ theta^T A theta - 2 z^T theta + const; (A, z, (blk, p, act)) or None."""
+    parts = _du_parts(data, model, takes, n, du)
+    if parts is None:
+        return None
+    blk, p, act, y, dy, g, e = parts
+    _, J = _mix_terms(blk, p, model.density[n], model.branch[n])
+    gg = np.einsum("smx,smx->sm", g, g)
+    ge = np.einsum("smx,smx->sm", g, e)
+    A = np.einsum("sfm,sgm->fg", J * (blk.wt * gg)[:, None], J)
+    b = np.einsum("sfm,sm->f", J, blk.wt * ge)
+    theta = np.concatenate([model.density[n], model.branch[n]])
+    return A, A @ theta + b, (blk, p, act)
+
+
+def _theta_lsq(A: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """argmin theta^T A theta - 2 z^T theta over the density's simplex (q >= 0, sum 1) and the
+    branch parameters' bounds (:data:`BRANCH_BOUNDS`)."""
+    from scipy.optimize import lsq_linear
+
+    F = DENSITY_FRACTIONS.size
+    K = A.shape[0]
+    scale = np.trace(A[:F, :F]) / F + 1e-300
+    R = np.linalg.cholesky(A + 1e-8 * scale * np.eye(K))
+    rhs = np.linalg.solve(R, z)  # min |R^T theta - rhs|^2 = theta^T A theta - 2 z^T theta + c
+    big = 1e3 * np.sqrt(scale)
+    row = np.concatenate([np.ones(F), np.zeros(K - F)])
+    lo = np.concatenate([np.zeros(F), [b[0] for b in BRANCH_BOUNDS]])
+    hi = np.concatenate([np.full(F, np.inf), [b[1] for b in BRANCH_BOUNDS]])
+    sol = lsq_linear(np.vstack([R.T, big * row]), np.append(rhs, big), bounds=(lo, hi),
+                     method="bvls")
+    th = sol.x.copy()
+    th[:F] = np.maximum(th[:F], 0.0)
+    th[:F] /= max(th[:F].sum(), 1e-12)
+    return th
+
+
+def _turns_inside(data: ModelData, k: int) -> bool:
+    """Whether take k's commands turn back inside the range (a minor loop), cached per take."""
+    key = ("turns", k)
+    if key not in data._tables:
+        from mocap.analysis.model_effects import command_moves
+
+        data._tables[key] = any(command_moves(g)[2] for _, g in data.takes[k].rows.groupby("du"))
+    return data._tables[key]
+
+
+def _update_density(data: ModelData, model: FaceModel, takes):
+    """One projected Gauss-Newton step of each DU's density q (F,) (q >= 0, sum 1) and branch
+    parameters (mix, kappa), with a halving line search on the training cost; the curves held.
+
+    Full sweeps say little of the density (they reverse where the sigmoid saturates): a DU
+    without minor loops among its training takes borrows them from the DUs with some. The DUs
+    share the skin's hysteresis in units of each curve's own width r: such a DU's density step
+    is pulled towards the density of the DUs with minor loops (their Gauss-Newton problems
+    summed, each normalised to its mean curvature) by SHARED_PULL x its own mean curvature; a
+    DU with minor loops of its own keeps its own. On a branch-play face (no hidden effect) the
+    held-out minor-loop take of a DU went from 2.5 to about 1.5 x the noise floor.
+
+    Returns (density (N, F), branch (N, 2))."""
+    F = DENSITY_FRACTIONS.size
+    dens, br = model.density.copy(), model.branch.copy()
+    probs = {}
     for n, du in enumerate(data.du_ids):
-        parts = _du_parts(data, model, takes, n, du)
-        if parts is None:
-            continue
-        blk, p, act, y, dy, g, e = parts
-        H = blk.P.shape[1]
-        x = np.clip(fr[:, None] * p[None, :, 2] / H_STEP, 0.0, H - 1 - 1e-9)  # (F, Ms)
-        i0 = np.floor(x).astype(np.int64)
-        lam = x - i0
-        Q = blk.P[:, i0] * (1 - lam) + blk.P[:, np.minimum(i0 + 1, H - 1)] * lam  # (S, F, Ms)
-        q = model.density[n]
-        w = np.einsum("sfm,f->sm", Q, q)
-        al = p[None, :, 0]
-        bb = p[None, :, 1] + blk.shift[:, None]
-        sg = 1.0 / (1.0 + np.exp(np.clip(-al * (w - bb), -700, 700)))
-        lo = 1.0 / (1.0 + np.exp(np.clip(al * bb, -700, 700)))
-        hi = 1.0 / (1.0 + np.exp(np.clip(-al * (255.0 - bb), -700, 700)))
-        dydw = al * sg * (1.0 - sg) / np.maximum(hi - lo, 1e-12)  # (S, Ms)
-        gg = np.einsum("smx,smx->sm", g, g)
-        ge = np.einsum("smx,smx->sm", g, e)
-        A = np.einsum("sfm,sgm->fg", Q * (dydw ** 2 * blk.wt * gg)[:, None], Q)
-        b = np.einsum("sfm,sm->f", Q, dydw * blk.wt * ge)
-        z = A @ q + b
-        scale = np.trace(A) / A.shape[0] + 1e-300
-        R = np.linalg.cholesky(A + 1e-8 * scale * np.eye(A.shape[0]))
-        rhs = np.linalg.solve(R, z)  # min |R^T q - rhs|^2 = q^T A q - 2 z^T q + const
-        big = 1e3 * np.sqrt(scale)
-        q_new, _ = nnls(np.vstack([R.T, big * np.ones((1, fr.size))]), np.append(rhs, big))
-        q_new = q_new / max(q_new.sum(), 1e-12)
-        cost0 = _du_cost(blk, p, model, n, act, q)
+        pr = _density_problem(data, model, takes, n, du)
+        if pr is not None:
+            probs[n] = pr
+    if not probs:
+        return dens, br
+    minor = {n: any(data.takes[k].dus == (data.du_ids[n],) and _turns_inside(data, k)
+                    for k in takes) for n in probs}
+    teach = [n for n in probs if minor[n]] or list(probs)
+    sc = {n: np.trace(A[:F, :F]) / F + 1e-300 for n, (A, _, _) in probs.items()}
+    shared = _theta_lsq(sum(probs[n][0] / sc[n] for n in teach),
+                        sum(probs[n][1] / sc[n] for n in teach))
+    for n, (A, z, (blk, p, act)) in probs.items():
+        # the density only: each DU keeps its own branch parameters (the shape of its forward
+        # and backward branches, which its full sweeps do show); pulling them too read a
+        # hidden coupling 20 % lower on a branch-play face
+        mu = (0.0 if minor[n] else SHARED_PULL * sc[n]) * np.r_[np.ones(F), 0.0, 0.0]
+        theta = np.concatenate([model.density[n], model.branch[n]])
+        new = _theta_lsq(A + np.diag(mu), z + mu * shared)
+
+        def cost(th, blk=blk, p=p, n=n, act=act, mu=mu):
+            return (_du_cost(blk, p, model, n, act, th[:F], th[F:])
+                    + float(np.sum(mu * (th - shared) ** 2)))
+
+        c0 = cost(theta)
         for _ in range(5):
-            if _du_cost(blk, p, model, n, act, q_new) < cost0:
-                out[n] = q_new
+            if cost(new) < c0:
+                dens[n], br[n] = new[:F], new[F:]
                 break
-            q_new = 0.5 * (q + q_new)
-    return out
+            new = 0.5 * (theta + new)
+    return dens, br
 
 
-def _du_cost(blk: _Block, p, model: FaceModel, n: int, act, q) -> float:
-    b = _Block(blk.P, blk.shift, blk.v, blk.wt, q, blk.trial)
+def _du_cost(blk: _Block, p, model: FaceModel, n: int, act, q, branch=None) -> float:
+    b = _Block(blk.P, blk.shift, blk.v, blk.wt, q, blk.trial,
+               model.branch[n] if branch is None else branch)
     y = _responses(b, p, True)
     return float(np.sum(_project(b, y, model.effects, b.v, b.wt)[2]))
 

@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 H_STEP = 0.5  # command units between table columns
-H_MAX = 100.0  # largest half-width in the table (PI widths r <= H_MAX / 2)
+H_MAX = 165.0  # largest half-width in the table (PI widths r <= H_MAX / 2)
 HALFWIDTHS = np.arange(0.0, H_MAX + 1e-9, H_STEP)  # (H,)
 
 
@@ -58,9 +58,14 @@ def play_table(a: np.ndarray, keep_every: int = 1, halfwidths: np.ndarray = HALF
 
 
 @njit(cache=True)
-def _pi_logistic(P, i0, lam, fr, wf, h_step, alpha, beta, shift, want, y, dy):
+def _pi_logistic(P, i0, lam_i, fr, wf, h_step, r, alpha, beta, shift, mix, kappa, want, y, dy):
     S, H = P.shape
     nf, M = i0.shape
+    fbar = 0.0
+    for f in range(nf):
+        fbar += wf[f] * fr[f]
+    pf = np.empty(nf)
+    dpf = np.empty(nf)
     for s in range(S):
         for m in range(M):
             w = 0.0
@@ -69,43 +74,76 @@ def _pi_logistic(P, i0, lam, fr, wf, h_step, alpha, beta, shift, want, y, dy):
                 j = i0[f, m]
                 a0 = P[s, j]
                 a1 = P[s, j + 1] if j + 1 < H else a0
-                w += wf[f] * (a0 + lam[f, m] * (a1 - a0))
-                dw += wf[f] * fr[f] * (a1 - a0) / h_step
+                pf[f] = a0 + lam_i[f, m] * (a1 - a0)
+                dpf[f] = fr[f] * (a1 - a0) / h_step
+                w += wf[f] * pf[f]
+                dw += wf[f] * dpf[f]
             al = alpha[m]
-            b = beta[m] + shift[s]
-            zs = -al * (w - b)
-            zl = al * b
-            zh = -al * (255.0 - b)
-            sg = 1.0 / (1.0 + np.exp(min(max(zs, -700.0), 700.0)))
-            lo = 1.0 / (1.0 + np.exp(min(max(zl, -700.0), 700.0)))
-            hi = 1.0 / (1.0 + np.exp(min(max(zh, -700.0), 700.0)))
-            span = max(hi - lo, 1e-12)
-            yy = (sg - lo) / span
+            yy = 0.0
+            da = 0.0
+            db = 0.0
+            dr = 0.0
+            for f in range(nf):
+                if wf[f] == 0.0 or (mix == 1.0 and f > 0 and kappa == 0.0):
+                    continue
+                if mix == 1.0 and kappa == 0.0:  # the PI form: one sigmoid of the density's mean
+                    x = w
+                    dx = dw
+                    off = 0.0
+                    q = 1.0
+                else:
+                    x = mix * w + (1.0 - mix) * pf[f]
+                    dx = mix * dw + (1.0 - mix) * dpf[f]
+                    off = kappa * (fr[f] - fbar)
+                    q = wf[f]
+                b = beta[m] + shift[s] + off * r[m]
+                zs = -al * (x - b)
+                zl = al * b
+                zh = -al * (255.0 - b)
+                sg = 1.0 / (1.0 + np.exp(min(max(zs, -700.0), 700.0)))
+                lo = 1.0 / (1.0 + np.exp(min(max(zl, -700.0), 700.0)))
+                hi = 1.0 / (1.0 + np.exp(min(max(zh, -700.0), 700.0)))
+                span = max(hi - lo, 1e-12)
+                yf = (sg - lo) / span
+                yy += q * yf
+                if want:
+                    ss = sg * (1.0 - sg)
+                    ll = lo * (1.0 - lo)
+                    hh = hi * (1.0 - hi)
+                    ds_a = ss * (x - b)
+                    ds_b = -al * ss
+                    dl_a = ll * (-b)
+                    dl_b = -al * ll
+                    dh_a = hh * (255.0 - b)
+                    dh_b = -al * hh
+                    dyb = (ds_b - dl_b) / span - yf / span * (dh_b - dl_b)
+                    da += q * ((ds_a - dl_a) / span - yf / span * (dh_a - dl_a))
+                    db += q * dyb
+                    dr += q * (al * ss / span * dx + dyb * off)
             y[s, m] = yy
             if want:
-                ss = sg * (1.0 - sg)
-                ll = lo * (1.0 - lo)
-                hh = hi * (1.0 - hi)
-                ds_a = ss * (w - b)
-                ds_b = -al * ss
-                dl_a = ll * (-b)
-                dl_b = -al * ll
-                dh_a = hh * (255.0 - b)
-                dh_b = -al * hh
-                dy[s, m, 0] = (ds_a - dl_a) / span - yy / span * (dh_a - dl_a)
-                dy[s, m, 1] = (ds_b - dl_b) / span - yy / span * (dh_b - dl_b)
-                dy[s, m, 2] = al * ss / span * dw
+                dy[s, m, 0] = da
+                dy[s, m, 1] = db
+                dy[s, m, 2] = dr
 
 
 def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta: np.ndarray,
                            shift: np.ndarray | None = None, fractions=None,
-                           derivatives: bool = False, weights=None):
-    """Normalised logistic of the PI operator of width r, read from a play table.
+                           derivatives: bool = False, weights=None, mix: float = 1.0,
+                           kappa: float = 0.0):
+    """Normalised response of the plays of width r, read from a play table.
+
+    With ``mix`` = 1 and ``kappa`` = 0 (the default) the logistic of the PI operator,
+    L(sum_f q_f play_{f r}); else the density-weighted mean of logistics of blended plays,
+    sum_f q_f L(mix w + (1 - mix) play_{f r}; alpha, beta + kappa (f - fbar) r), w the PI
+    output and fbar = sum_f q_f f (see :mod:`mocap.analysis.face_model`).
 
     P : (S, H) play table (:func:`play_table`).  r, alpha, beta : (M,) per curve (command units,
     1/command unit, command units).  shift : (S,) bias shift per sample (command units) or None.
     fractions : (F,) play half-widths / r (default the model's 0, .5, 1, 1.5, 2).
     weights : (F,) the plays' weights (the PI density; default equal, 1 / F each).
+    mix : 0..1, the PI operator's share in each play's input.  kappa : how far a play's
+    sigmoid centre moves per unit of its width (dimensionless; 0: all centred on beta).
 
     Returns y (S, M) and, with ``derivatives``, dy/d(alpha, beta, r) (S, M, 3).
     """
@@ -123,7 +161,7 @@ def pi_logistic_from_table(P: np.ndarray, r: np.ndarray, alpha: np.ndarray, beta
     wf = (np.full(fr.size, 1.0 / fr.size) if weights is None
           else np.ascontiguousarray(weights, float))
     sh = np.zeros(S) if shift is None else np.ascontiguousarray(np.broadcast_to(shift, (S,)), float)
-    _pi_logistic(np.ascontiguousarray(P, float), i0, lam, fr, wf, H_STEP,
+    _pi_logistic(np.ascontiguousarray(P, float), i0, lam, fr, wf, H_STEP, np.ascontiguousarray(r),
                  np.ascontiguousarray(alpha, float), np.ascontiguousarray(beta, float), sh,
-                 derivatives, y, dy)
+                 float(mix), float(kappa), derivatives, y, dy)
     return (y, dy) if derivatives else y
