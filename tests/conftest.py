@@ -15,6 +15,75 @@ import pytest  # noqa: E402
 
 from mocap.simulate import preset, simulate  # noqa: E402
 
+TESTS = Path(__file__).resolve().parent
+
+
+# --- both cores by default (issue #20) ---------------------------------------------------------
+# With pytest-xdist installed (the dev extra) and no -n given, the suite runs on as many workers
+# as the machine has cores ("-n auto --dist loadgroup"); "-n 0" or "-p no:xdist" runs it in one
+# process, as before. The default is set here rather than in addopts so that "-p no:xdist" (or a
+# venv without xdist) still parses the command line. xdist's workers parse the command line
+# again (with PYTEST_ADDOPTS), and only a worker that was told --dist loadgroup names its tests'
+# groups: the option is passed on to them that way.
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    if not config.pluginmanager.hasplugin("xdist") or hasattr(config, "workerinput"):
+        return
+    opt = config.option
+    if opt.numprocesses is None and not opt.usepdb and not opt.collectonly:
+        opt.numprocesses = "auto"
+    if opt.numprocesses and opt.dist == "no":
+        opt.dist = "loadgroup"
+        os.environ["PYTEST_ADDOPTS"] = f"{os.environ.get('PYTEST_ADDOPTS', '')} --dist loadgroup"
+
+
+# Tests that share a session- or module-scoped fixture of this folder (a simulated session, a
+# run of it, an identified face) go to one worker together (--dist loadgroup), so that each such
+# fixture is still built once per test run; every other test is scheduled on its own.
+
+
+def _shared_fixtures(item) -> list[str]:
+    """The non-function-scoped fixtures of tests/ that ``item`` uses (directly or not)."""
+    info = getattr(item, "_fixtureinfo", None)  # pytest's; without it, no grouping (slower only)
+    if info is None:
+        return []
+    out = []
+    for name in item.fixturenames:
+        defs = info.name2fixturedefs.get(name)
+        if not defs:
+            continue
+        fd = defs[-1]
+        code = getattr(getattr(fd, "func", None), "__code__", None)
+        if fd.scope != "function" and code is not None and Path(code.co_filename).parent == TESTS:
+            out.append(f"{Path(code.co_filename).stem}.{name}")
+    return out
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the marks into node ids
+def pytest_collection_modifyitems(config, items):
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    parent: dict[str, str] = {}
+
+    def find(x: str) -> str:
+        while parent.setdefault(x, x) != x:
+            x = parent[x]
+        return x
+
+    uses = {}
+    for item in items:
+        shared = _shared_fixtures(item)
+        if shared:
+            uses[item] = shared
+            for other in shared[1:]:
+                a, b = find(shared[0]), find(other)
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    for item, shared in uses.items():
+        item.add_marker(pytest.mark.xdist_group(find(shared[0])))
+
 
 def make_session(root: Path, **overrides) -> Path:
     """Simulate a small session into ``root`` (session/ and truth/); return ``root``."""
