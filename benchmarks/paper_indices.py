@@ -27,9 +27,11 @@ HERE = Path(__file__).resolve().parent
 CACHE = HERE / "cache" / "paper"
 
 
-def truth_indices(run_dir: Path, seed: int = 2018) -> pd.DataFrame:
-    """Per DU the paper's recipe on noise-free trials, over the run's kept markers."""
-    from mocap.analysis.paper_indices import paper_indices, schedule_timing
+def noise_free_trials(run_dir: Path, seed: int = 2018):
+    """Per DU of the paper preset: (du, trials (K, n_frames, M, 3) mm noise-free over the run's
+    markers in its order, keep (M,) the run's kept markers, the schedule's timing, its command
+    rows, fps). Each trial with its own trial-to-trial variation; no capture noise, no skin jitter."""
+    from mocap.analysis.paper_indices import schedule_timing
     from mocap.analysis.session_analysis import kept_markers
     from mocap.schedules import trapezoid
     from mocap.simulate import preset
@@ -38,21 +40,27 @@ def truth_indices(run_dir: Path, seed: int = 2018) -> pd.DataFrame:
 
     cfg = preset("paper", seed=seed)
     _, _, face = virtual_rig_and_face(cfg)
-    summary = json.loads((run_dir / "summary.json").read_text())
-    names = summary["markers"]["names"]
+    names = json.loads((run_dir / "summary.json").read_text())["markers"]["names"]
     order = [list(face.marker_names).index(n) for n in names]
     rej = pd.read_csv(run_dir / "rejections.csv")
     rej["du"] = rej["du"].astype("Int64")
-    rows = []
     for du in face.du_ids:
         sched = trapezoid(du)
         n = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
         T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
                                      take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
                       for k in range(1, cfg.n_trials + 1)])[:, :, order]
-        keep = kept_markers(rej, names, du)
-        tm = schedule_timing(sched["time_s"], sched["command"])
-        p = paper_indices(T.mean(axis=0), T, keep, tm, cfg.fps, n_boot=0)
+        yield (du, T, kept_markers(rej, names, du), schedule_timing(sched["time_s"], sched["command"]),
+               sched, cfg.fps)
+
+
+def truth_indices(run_dir: Path, seed: int = 2018) -> pd.DataFrame:
+    """Per DU the paper's recipe on noise-free trials, over the run's kept markers."""
+    from mocap.analysis.paper_indices import paper_indices
+
+    rows = []
+    for du, T, keep, tm, _, fps in noise_free_trials(run_dir, seed):
+        p = paper_indices(T.mean(axis=0), T, keep, tm, fps, n_boot=0)
         rows.append({"du": du, "alpha_fwd": p.alpha_fwd, "beta_fwd": p.beta_fwd,
                      "alpha_bwd": p.alpha_bwd, "beta_bwd": p.beta_bwd,
                      "sensitivity": p.sensitivity, "hysteresis": p.hysteresis,
@@ -68,40 +76,22 @@ def noise_draws(run_dir: Path, draws: int, noise_mm: float = 0.025, seed: int = 
     with 15 other takes' rest frames as the session analysis does), against the recipe on the
     noise-free trials. Columns: mean and sd of the relative error."""
     from mocap.analysis.noise_corrected import capture_noise_covariance, corrected_dyssynchrony
-    from mocap.analysis.paper_indices import paper_indices, schedule_timing
-    from mocap.analysis.session_analysis import kept_markers
-    from mocap.schedules import trapezoid
+    from mocap.analysis.paper_indices import paper_indices
     from mocap.session import command_matrix
-    from mocap.simulate import preset
-    from mocap.simulate.motion import true_positions
-    from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
 
-    cfg = preset("paper", seed=seed)
-    _, _, face = virtual_rig_and_face(cfg)
-    names = json.loads((run_dir / "summary.json").read_text())["markers"]["names"]
-    order = [list(face.marker_names).index(n) for n in names]
-    rej = pd.read_csv(run_dir / "rejections.csv")
-    rej["du"] = rej["du"].astype("Int64")
     rng = np.random.default_rng(seed)
     rows = []
-    for du in face.du_ids:
-        sched = trapezoid(du)
-        n = int(round((float(sched.time_s.max()) + RESPONSE_TAIL_S) * cfg.fps))
-        T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
-                                     take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
-                      for k in range(1, cfg.n_trials + 1)])[:, :, order]
-        keep = kept_markers(rej, names, du)
-        tm = schedule_timing(sched["time_s"], sched["command"])
-        truth = paper_indices(T.mean(axis=0), T, keep, tm, cfg.fps, n_boot=0).dyssynchrony_raw
-        c = command_matrix(sched, cfg.fps, n, [du])[:, 0]
-        K, M = T.shape[0], T.shape[2]
+    for du, T, keep, tm, sched, fps in noise_free_trials(run_dir, seed):
+        truth = paper_indices(T.mean(axis=0), T, keep, tm, fps, n_boot=0).dyssynchrony_raw
+        K, n, M = T.shape[:3]
+        c = command_matrix(sched, fps, n, [du])[:, 0]
         n_prior = 15 * K * 6
         rel = []
         for _ in range(draws):
             X = T + rng.normal(0, noise_mm, T.shape)
-            cov = capture_noise_covariance(X, c, cfg.fps).cov
+            cov = capture_noise_covariance(X, c, fps).cov
             rest = T[:, 0].mean(axis=0) + rng.normal(0, noise_mm / np.sqrt(n_prior), (M, 3))
-            g, _ = corrected_dyssynchrony(X.mean(axis=0), np.full((n, M), K), keep, tm, cfg.fps, cov,
+            g, _ = corrected_dyssynchrony(X.mean(axis=0), np.full((n, M), K), keep, tm, fps, cov,
                                           rest_prior=(rest, np.full(M, float(n_prior))))
             rel.append(g / truth - 1)
         rows.append({"du": du, "truth": truth, "mean_rel": float(np.mean(rel)),
