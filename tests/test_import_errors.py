@@ -111,12 +111,42 @@ def test_a_stalled_c3d_reader_is_stopped(tmp_path, monkeypatch):
     assert time.perf_counter() - t0 < 30
 
 
+def test_a_c3d_cut_before_the_end_of_its_parameter_section_is_refused_before_parsing(
+        tmp_path, monkeypatch):
+    """Cut inside its header or parameter section, a C3D made ezc3d crash (a cut at byte 520 of
+    a 2-block parameter section) or loop until the child's 60 s limit (byte 820): the sizes in
+    the header tell it, and the file is refused before any parser runs (the parser is replaced
+    by one that accepts everything); a cut in the data section still goes to the parser."""
+    path = _c3d(tmp_path)
+    data = path.read_bytes()
+    end = (data[0] - 1 + data[(data[0] - 1) * 512 + 2]) * 512  # the parameter section's end
+    monkeypatch.setattr(c3d_file, "_read_c3d", lambda p: "parsed")
+    for cut in (0, 100, 511, 512, 515, 520, 820, end - 1):
+        bad = tmp_path / f"cut{cut}.c3d"
+        bad.write_bytes(data[:cut])
+        with pytest.raises(ImportError_, match=str(bad)) as e:
+            read_c3d(bad)
+        assert "C3D" in str(e.value) and ("cut" in str(e.value) or "header" in str(e.value))
+    bad = tmp_path / "wrongkey.c3d"
+    bad.write_bytes(data[:1] + b"\x51" + data[2:])
+    with pytest.raises(ImportError_, match="0x50"):
+        read_c3d(bad)
+    cut = tmp_path / "data_cut.c3d"
+    cut.write_bytes(data[:end + 10])
+    assert read_c3d(cut) == "parsed"
+
+
 def test_errors_raised_in_the_child_keep_their_type(tmp_path):
     with pytest.raises(ImportError_, match="file not found"):
         read_c3d(tmp_path / "none.c3d")
     bad = tmp_path / "junk.c3d"
     bad.write_bytes(b"\x00" * 100)
-    with pytest.raises(ImportError_, match=r"junk\.c3d: not a readable C3D file"):
+    with pytest.raises(ImportError_, match=r"junk\.c3d: not a C3D file"):  # refused by its size
+        read_c3d(bad)
+    # a header and a parameter section of the right sizes, all zeros: the parser's own error
+    bad = tmp_path / "zeros.c3d"
+    bad.write_bytes(bytes([2, 0x50]) + bytes(510) + bytes([0, 0, 1, 84]) + bytes(1532))
+    with pytest.raises(ImportError_, match=r"zeros\.c3d"):
         read_c3d(bad)
 
 

@@ -81,6 +81,7 @@ def read_c3d(path: str | os.PathLike) -> MarkerData:
     import multiprocessing as mp
 
     path = Path(path)
+    _check_extent(path)
     if "fork" not in mp.get_all_start_methods():  # pragma: no cover - Windows
         return _read_c3d(path)
     size = path.stat().st_size if path.is_file() else 0
@@ -112,6 +113,41 @@ def read_c3d(path: str | os.PathLike) -> MarkerData:
     if not ok:
         raise value
     return value
+
+
+def _check_extent(path: Path) -> None:
+    """Refuse at once a file that cannot hold its own C3D header and parameter section.
+
+    The header's first byte is the parameter section's first 512-byte block (1-based) and its
+    second the C3D key 0x50; the parameter section's third byte is its number of blocks, which
+    every writer sets (the data follow it). A file cut inside that section made ezc3d loop
+    until the child's time limit (60 s): the sizes alone tell, in the single bytes the format
+    keeps whatever the processor type."""
+    if not path.is_file():
+        return  # the reader says "file not found"
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        head = fh.read(512)
+        if len(head) < 512:
+            raise ImportError_(f"{path}: not a C3D file ({size} bytes: shorter than a C3D header, "
+                               "512 bytes)")
+        if head[1] != 0x50:
+            raise ImportError_(f"{path}: not a C3D file (its second byte is 0x{head[1]:02x}; a "
+                               "C3D header has 0x50 there)")
+        start = head[0]
+        if start < 2:
+            raise ImportError_(f"{path}: not a readable C3D file (its header puts the parameter "
+                               f"section at block {start}; it follows the header, block 2 or later)")
+        fh.seek((start - 1) * 512)
+        section = fh.read(4)
+    if len(section) < 4:
+        raise ImportError_(f"{path}: not a readable C3D file (it ends at byte {size}, before its "
+                           f"parameter section at byte {(start - 1) * 512}: the file is cut)")
+    end = (start - 1 + section[2]) * 512
+    if size < end:
+        raise ImportError_(f"{path}: not a readable C3D file (its parameter section, {section[2]} "
+                           f"blocks from byte {(start - 1) * 512}, ends at byte {end}, but the "
+                           f"file ends at byte {size}: the file is cut)")
 
 
 def _limit_memory(extra_bytes: int) -> None:
