@@ -259,7 +259,8 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
 
 def empty_model(data: ModelData, effects) -> FaceModel:
     N, M = len(data.du_ids), len(data.marker_names)
-    return FaceModel(branch=np.tile(BRANCH_START, (N, 1)), fps=data.fps, marker_names=data.marker_names, rest_mm=data.rest_mm,
+    return FaceModel(branch=np.tile(BRANCH_START, (N, 1)), fps=data.fps,
+                     marker_names=data.marker_names, rest_mm=data.rest_mm,
                      du_ids=data.du_ids, active=data.active.copy(),
                      alpha=np.full((N, M), 0.03), beta=np.full((N, M), 128.0),
                      r=np.where(any(type(e).frees_r for e in effects), 8.0, 0.0) * np.ones((N, M)),
