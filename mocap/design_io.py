@@ -32,17 +32,17 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
     from mocap.discrepancy_input import load_measured
 
     say = progress or (lambda m: None)
+    names = None if effects is None else list(effects)
+    bad = [n for n in names or () if n not in CATALOGUE]
+    if bad:  # before the session is read and prepared
+        raise ValueError(f"--effects: unknown {', '.join(bad)} (known: {', '.join(CATALOGUE)})")
     ms = load_measured(path, progress=say)
     settings = DiscrepancySettings(jobs=jobs)
     prep = prepare(ms.session.fps, ms.marker_names, ms.rest_mm, ms.takes, ms.rest_X, settings)
-    if effects is None:
+    if names is None:
         res = run_discrepancy(prep, settings, progress=say)
         named = ", ".join(res.named) or "no missing effect"
         return res.final_model, f"discrepancy workflow on {ms.source} (named: {named})"
-    names = list(effects)
-    bad = [n for n in names if n not in CATALOGUE]
-    if bad:
-        raise ValueError(f"--effects: unknown {', '.join(bad)} (known: {', '.join(CATALOGUE)})")
     data = prep.data
     takes = list(range(len(data.takes)))
     per_curve = [CATALOGUE[n]() for n in names if CATALOGUE[n].per_curve]

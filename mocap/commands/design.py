@@ -220,6 +220,8 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
     say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     t0 = time.perf_counter()
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
+    # the played take before the model: a wrong take name is an error at once, not after the fit
+    take = played_take(args.measured or args.source, args.refine) if args.refine else None
     model, how = identify_model(args.source, effects, jobs=args.jobs, progress=say)
     say(f"face model: {how}; effects {', '.join(model.effect_names) or 'none'} "
         f"{ {k: round(v, 4) for k, v in model.parameters().items()} } ({time.perf_counter() - t0:.1f} s)")
@@ -236,8 +238,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
             markers = [m.strip() for m in args.markers.split(",") if m.strip()]
     weights = marker_weights(model, dus, markers)
     design_ref = ref
-    if args.refine:
-        take = played_take(args.measured or args.source, args.refine)
+    if take is not None:
         if abs(take.fps - model.fps) > 1e-6:
             raise ValueError(f"--refine: the take {take.name} is at {take.fps} fps, the model at {model.fps}")
         previous = read_reference(args.reference, ref, model.marker_names) if args.reference else None
