@@ -375,7 +375,8 @@ def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, ite
         if weak.any():
             p[weak] = np.median(ps, axis=0)
             wb = blk.sub(weak)
-            coef[weak] = _project(wb, _responses(wb, p[weak], hyst), effects, wb.v, wb.wt)[0]
+            y_weak = np.repeat(_responses(wb, p[weak][:1], hyst), int(weak.sum()), axis=1)  # one shape
+            coef[weak] = _project(wb, y_weak, effects, wb.v, wb.wt)[0]
         model.alpha[n, act], model.beta[n, act] = p[:, 0], p[:, 1]
         model.r[n, act] = p[:, 2] if hyst else 0.0
         model.D[n, act] = coef[:, 0]
