@@ -596,15 +596,19 @@ def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2
     s = np.array([model.take_shifts.get(t.name, {}).get(d, 0.0) if d in t.dus else 0.0
                   for d in t.dus], float)
     J = solve = None
+    dus_ = list(t.dus)
     for _ in range(iters):
-        pred = model.predict_tables(tables, list(t.dus), t.trial, s)
+        y = model.response(tables, dus_, t.trial, s)
+        pred = model.displacement_from_response(y, dus_)
         e = np.where(ok[..., None], obs - pred, 0.0)
         if J is None:
             J = []
             for j in range(len(t.dus)):
                 sj = s.copy()
                 sj[j] += step
-                J.append(np.where(ok[..., None], model.predict_tables(tables, list(t.dus), t.trial, sj)
+                yj = y.copy()  # a DU's shift moves its own response only
+                yj[:, j] = model.response(tables[j:j + 1], dus_[j:j + 1], t.trial, sj[j:j + 1])[:, 0]
+                J.append(np.where(ok[..., None], model.displacement_from_response(yj, dus_)
                                   - pred, 0.0).ravel() / step)
             J = np.stack(J, axis=0)  # (n, S * M * 3); einsum: no BLAS threads for tiny products
             JtJ = np.einsum("ij,kj->ik", J, J)
