@@ -194,13 +194,11 @@ def _responses(blk: _Block, p: np.ndarray, hyst: bool, derivatives: bool = False
     return y, (dy if hyst else dy[..., :2])
 
 
-def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray,
-             parts: bool = False):
+def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray):
     """Variable projection: coefficients (M, K+1, 3), residual (S, M, 3), cost (M,).
 
     Per curve m, with the basis A_m = [y, bases(y)] (S, K+1) and weights w: the normal
-    equations (A^T W A + 1e-9 I) c = A^T W v, as batched matrix products over curves. With
-    ``parts``, also (W A (M, S, K+1), A^T W A (M, K+1, K+1)) for the projected Jacobian."""
+    equations (A^T W A + 1e-9 I) c = A^T W v, as batched matrix products over curves."""
     A = np.stack([y] + [b for e in effects for b in e.bases(y)], axis=-1)  # (S, M, k)
     k = A.shape[-1]
     Am = np.ascontiguousarray(A.transpose(1, 0, 2))  # (M, S, k)
@@ -210,86 +208,53 @@ def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray,
     coef = np.linalg.solve(G, np.matmul(wAm.transpose(0, 2, 1), vm))  # (M, k, 3)
     em = vm - np.matmul(Am, coef)  # (M, S, 3)
     cost = np.einsum("msx,ms->m", em * em, wt.T)
-    if parts:
-        return coef, em.transpose(1, 0, 2), cost, (wAm, G)
     return coef, em.transpose(1, 0, 2), cost
 
 
 def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30,
                tol: float = 1e-6):
-    """Levenberg-Marquardt over (alpha, beta[, r]) per curve; returns (p, coef, cost).
-
-    The Jacobian is the variable-projection one (Kaufman): d pred / dp = dy/dp * g with
-    g = coef_0 + sum_k basis_k'(y) coef_k, projected off the span of the curve's basis (the
-    linear coefficients follow each step). Without the projection each step assumed the
-    coefficients held, and the fit crept (every step accepted, the cost falling 0.1-0.5 % a
-    step, still 5-10 % above its minimum after 30 steps from a start 10 % off). A curve is done
-    when a step changes its cost by less than ``tol`` (relative) and is not iterated again."""
+    """Levenberg-Marquardt over (alpha, beta[, r]) per curve; returns (p, coef, cost)."""
     v, wt = blk.v, blk.wt
     p = p0.copy()
-    M = p.shape[0]
     npar = 3 if hyst else 2
     y, dy = _responses(blk, p, hyst, derivatives=True)
-    coef, e, cost, (wA, G) = _project(blk, y, effects, v, wt, parts=True)
-    lam = np.full(M, 1e-3)
-    live = np.arange(M)
-    sub = blk
-    coef_out = coef.copy()
+    coef, e, cost = _project(blk, y, effects, v, wt)
+    lam = np.full(p.shape[0], 1e-3)
     for _ in range(iters):
-        # d pred / dp_j = dy/dp_j * g,  g = coef_0 + sum_k basis_k'(y) coef_k
+        # d pred / dp_j = dy/dp_j * g,  g = coef_0 + sum_k basis_k'(y) coef_k   (Kaufman)
         g = np.broadcast_to(coef[None, :, 0, :], e.shape)
         kk = 1
         for ef in effects:
             for db in ef.bases_derivative(y):
                 g = g + db[..., None] * coef[None, :, kk, :]
                 kk += 1
-        w_ = sub.wt
-        ge = np.einsum("smx,smx->sm", g, e) * w_
-        gg = np.einsum("smx,smx->sm", g, g) * w_
-        J = np.ascontiguousarray(dy[..., :npar].transpose(1, 0, 2))  # (m, S, P)
-        b = np.matmul(ge.T[:, None, :], J)[:, 0]  # (m, P)
-        H = np.matmul((J * gg.T[..., None]).transpose(0, 2, 1), J)  # (m, P, P)
-        # the projection: H -= sum_x T_x^T G^-1 T_x, T_x = A^T W (dy/dp * g_x) (k, P)
-        u = (np.ascontiguousarray(g.transpose(1, 0, 2))[..., None] * J[:, :, None, :])
-        T = np.matmul(wA.transpose(0, 2, 1), u.reshape(u.shape[0], u.shape[1], -1))  # (m, k, 3P)
-        H = H - np.einsum("mkxi,mkxj->mij", T.reshape(T.shape[0], T.shape[1], 3, npar),
-                          np.linalg.solve(G, T).reshape(T.shape[0], T.shape[1], 3, npar))
-        H = 0.5 * (H + H.transpose(0, 2, 1))
-        lm = lam[live]
-        Hd = H + lm[:, None, None] * (np.einsum("mii->mi", H)[..., None] * np.eye(npar)) + 1e-12 * np.eye(npar)
+        ge = np.einsum("smx,smx->sm", g, e) * wt
+        gg = np.einsum("smx,smx->sm", g, g) * wt
+        J = np.ascontiguousarray(dy[..., :npar].transpose(1, 0, 2))  # (M, S, P)
+        b = np.matmul(ge.T[:, None, :], J)[:, 0]  # (M, P)
+        H = np.matmul((J * gg.T[..., None]).transpose(0, 2, 1), J)  # (M, P, P)
+        Hd = H + lam[:, None, None] * (np.einsum("mii->mi", H)[..., None] * np.eye(npar)) + 1e-12 * np.eye(npar)
         step = np.linalg.solve(Hd, b[..., None])[..., 0]
-        q = p[live].copy()
+        q = p.copy()
         q[:, :npar] += step
         q[:, 0] = np.clip(q[:, 0], 1e-3, 0.5)
         q[:, 1] = np.clip(q[:, 1], -100.0, 355.0)
         if hyst:
             q[:, 2] = np.clip(q[:, 2], 0.0, R_MAX)
-        y_new, dy_new = _responses(sub, q, hyst, derivatives=True)
-        coef_new, e_new, cost_new, (wA_new, G_new) = _project(sub, y_new, effects, sub.v, w_,
-                                                              parts=True)
-        c_old = cost[live]
-        better = cost_new < c_old
-        change = np.abs(c_old - cost_new) / np.maximum(c_old, 1e-300)
-        p[live] = np.where(better[:, None], q, p[live])
-        cost[live] = np.where(better, cost_new, c_old)
-        lam[live] = np.where(better, np.maximum(lm / 4, 1e-9), lm * 6)
-        done = (change < tol) | (lam[live] > 1e7)
-        if better.all():
-            y, dy, coef, e, wA, G = y_new, dy_new, coef_new, e_new, wA_new, G_new
-        elif better.any():
-            y[:, better], dy[:, better], e[:, better] = y_new[:, better], dy_new[:, better], e_new[:, better]
-            coef[better], wA[better], G[better] = coef_new[better], wA_new[better], G_new[better]
-        coef_out[live] = coef
-        if done.all():
+        y_new, dy_new = _responses(blk, q, hyst, derivatives=True)
+        coef_new, e_new, cost_new = _project(blk, y_new, effects, v, wt)
+        better = cost_new < cost
+        rel = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
+        p = np.where(better[:, None], q, p)
+        y = np.where(better[None], y_new, y)
+        dy = np.where(better[None, :, None], dy_new, dy)
+        coef = np.where(better[:, None, None], coef_new, coef)
+        e = np.where(better[None, :, None], e_new, e)
+        cost = np.where(better, cost_new, cost)
+        lam = np.where(better, np.maximum(lam / 4, 1e-9), lam * 6)
+        if np.all((better & (rel < tol)) | (lam > 1e7)):
             break
-        if done.any():  # the curves still moving, alone
-            keep = ~done
-            live = live[keep]
-            sub = _Block(blk.P, blk.shift, blk.v[:, live], blk.wt[:, live], blk.q, blk.trial,
-                         blk.branch)
-            y, dy, e = y[:, keep], dy[:, keep], e[:, keep]
-            coef, wA, G = coef[keep], wA[keep], G[keep]
-    return p, coef_out, cost
+    return p, coef, cost
 
 
 def empty_model(data: ModelData, effects) -> FaceModel:
