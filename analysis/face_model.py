@@ -187,10 +187,13 @@ class FaceModel:
             act = np.flatnonzero(self.active[n])
             if act.size == 0:
                 continue
-            y[:, j, act] = pi_logistic_from_table(tables[j], self.r[n, act], self.alpha[n, act],
-                                                  self.beta[n, act], shift, DENSITY_FRACTIONS,
-                                                  weights=self.density[n], mix=self.branch[n, 0],
-                                                  kappa=self.branch[n, 1])
+            # the weak curves share their DU's median shape: each distinct curve computed once
+            par, inv = np.unique(np.stack([self.r[n, act], self.alpha[n, act], self.beta[n, act]]),
+                                 axis=1, return_inverse=True)
+            y[:, j, act] = pi_logistic_from_table(tables[j], par[0], par[1], par[2], shift,
+                                                  DENSITY_FRACTIONS, weights=self.density[n],
+                                                  mix=self.branch[n, 0],
+                                                  kappa=self.branch[n, 1])[:, inv.ravel()]
         return y
 
     def displacement_from_response(self, y: np.ndarray, dus) -> np.ndarray:

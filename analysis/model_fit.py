@@ -375,7 +375,8 @@ def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, ite
         if weak.any():
             p[weak] = np.median(ps, axis=0)
             wb = blk.sub(weak)
-            coef[weak] = _project(wb, _responses(wb, p[weak], hyst), effects, wb.v, wb.wt)[0]
+            y_weak = np.repeat(_responses(wb, p[weak][:1], hyst), int(weak.sum()), axis=1)  # one shape
+            coef[weak] = _project(wb, y_weak, effects, wb.v, wb.wt)[0]
         model.alpha[n, act], model.beta[n, act] = p[:, 0], p[:, 1]
         model.r[n, act] = p[:, 2] if hyst else 0.0
         model.D[n, act] = coef[:, 0]
@@ -595,15 +596,19 @@ def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2
     s = np.array([model.take_shifts.get(t.name, {}).get(d, 0.0) if d in t.dus else 0.0
                   for d in t.dus], float)
     J = solve = None
+    dus_ = list(t.dus)
     for _ in range(iters):
-        pred = model.predict_tables(tables, list(t.dus), t.trial, s)
+        y = model.response(tables, dus_, t.trial, s)
+        pred = model.displacement_from_response(y, dus_)
         e = np.where(ok[..., None], obs - pred, 0.0)
         if J is None:
             J = []
             for j in range(len(t.dus)):
                 sj = s.copy()
                 sj[j] += step
-                J.append(np.where(ok[..., None], model.predict_tables(tables, list(t.dus), t.trial, sj)
+                yj = y.copy()  # a DU's shift moves its own response only
+                yj[:, j] = model.response(tables[j:j + 1], dus_[j:j + 1], t.trial, sj[j:j + 1])[:, 0]
+                J.append(np.where(ok[..., None], model.displacement_from_response(yj, dus_)
                                   - pred, 0.0).ravel() / step)
             J = np.stack(J, axis=0)  # (n, S * M * 3); einsum: no BLAS threads for tiny products
             JtJ = np.einsum("ij,kj->ik", J, J)

@@ -64,9 +64,17 @@ def _pi_logistic(P, i0, lam_i, fr, wf, h_step, r, alpha, beta, shift, mix, kappa
     fbar = 0.0
     for f in range(nf):
         fbar += wf[f] * fr[f]
+    pi_form = mix == 1.0 and kappa == 0.0
     pf = np.empty(nf)
     dpf = np.empty(nf)
+    # each play's normalisation L(0), L(255) depends on the sample only through its shift, which
+    # is constant over a take: computed where the shift changes, reused (the same numbers)
+    bc = np.empty((M, nf))
+    loc = np.empty((M, nf))
+    hic = np.empty((M, nf))
+    spc = np.empty((M, nf))
     for s in range(S):
+        fresh = s == 0 or shift[s] != shift[s - 1]
         for m in range(M):
             w = 0.0
             dw = 0.0
@@ -84,9 +92,9 @@ def _pi_logistic(P, i0, lam_i, fr, wf, h_step, r, alpha, beta, shift, mix, kappa
             db = 0.0
             dr = 0.0
             for f in range(nf):
-                if wf[f] == 0.0 or (mix == 1.0 and f > 0 and kappa == 0.0):
+                if wf[f] == 0.0 or (pi_form and f > 0):
                     continue
-                if mix == 1.0 and kappa == 0.0:  # the PI form: one sigmoid of the density's mean
+                if pi_form:  # one sigmoid of the density's mean
                     x = w
                     dx = dw
                     off = 0.0
@@ -96,14 +104,24 @@ def _pi_logistic(P, i0, lam_i, fr, wf, h_step, r, alpha, beta, shift, mix, kappa
                     dx = mix * dw + (1.0 - mix) * dpf[f]
                     off = kappa * (fr[f] - fbar)
                     q = wf[f]
-                b = beta[m] + shift[s] + off * r[m]
+                if fresh:
+                    b = beta[m] + shift[s] + off * r[m]
+                    zl = al * b
+                    zh = -al * (255.0 - b)
+                    lo = 1.0 / (1.0 + np.exp(min(max(zl, -700.0), 700.0)))
+                    hi = 1.0 / (1.0 + np.exp(min(max(zh, -700.0), 700.0)))
+                    span = max(hi - lo, 1e-12)
+                    bc[m, f] = b
+                    loc[m, f] = lo
+                    hic[m, f] = hi
+                    spc[m, f] = span
+                else:
+                    b = bc[m, f]
+                    lo = loc[m, f]
+                    hi = hic[m, f]
+                    span = spc[m, f]
                 zs = -al * (x - b)
-                zl = al * b
-                zh = -al * (255.0 - b)
                 sg = 1.0 / (1.0 + np.exp(min(max(zs, -700.0), 700.0)))
-                lo = 1.0 / (1.0 + np.exp(min(max(zl, -700.0), 700.0)))
-                hi = 1.0 / (1.0 + np.exp(min(max(zh, -700.0), 700.0)))
-                span = max(hi - lo, 1e-12)
                 yf = (sg - lo) / span
                 yy += q * yf
                 if want:
