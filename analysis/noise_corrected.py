@@ -38,12 +38,12 @@ excursion, and the markers' independent errors add to the variance over markers.
 4. per frame, the variance over the markers of delta = g / max (each delta averaged over a box
    of ``box_s``, and of ``HOLD_BOX_S`` deep in the settled hold at the top, where the deltas are
    flat: the hold is most of the schedule and its true spread is near 0, so its noise, not its
-   spread, is what reaches gamma there) less the mean over the markers of each delta's noise variance (first order: the
-   frame's own error through the chord's slope, the rest reference's through the chord's
-   ``rest_gain`` (an error along the path at rest moves the chord by the slope at rest near
-   rest, up to 1.4 times the error on a bowed path, and by about the error itself at the far
-   end), the maximum's, with their overlaps; ``delta_noise_variance``), an unbiased estimate of
-   the noise-free variance;
+   spread, is what reaches gamma there) less the mean over the markers of each delta's noise
+   variance (first order: the frame's own error through the chord's slope, the rest reference's
+   through the chord's ``rest_gain`` (an error along the path at rest moves the chord by the
+   slope at rest near rest, up to 1.4 times the error on a bowed path, and by about the error
+   itself at the far end), the maximum's, with their overlaps; ``delta_noise_variance``), an
+   unbiased estimate of the noise-free variance;
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
    deviation by a soft signed square root (``soft_signed_sqrt``): the plain root where the
    variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise where
@@ -53,8 +53,8 @@ excursion, and the markers' independent errors add to the variance over markers.
    frame's own noise and the roots' mean leaned low (-1.6 % of gamma on off-chord faces). On
    the hold the long box cuts the variance's noise while the threshold, and so the root's
    slope there, stay the short box's (face-to-face sd at 3 trials and 0.05 mm 4.1 -> 3.4 % on
-   off-chord faces, 4.6 -> 3.6 % on bowed ones, 40 faces of 60 markers). A root of a zero-mean estimate is what
-   costs the most: where the true spread is 0 (the hold, the rest) the signed root
+   off-chord faces, 4.6 -> 3.6 % on bowed ones, 40 faces of 60 markers). A root of a zero-mean
+   estimate is what costs the most: where the true spread is 0 (the hold, the rest) the signed root
    sign(v) sqrt(|v|) is unbiased but turns noise of sd tau into errors of sd ~0.9 sqrt(tau),
    and no smoothing helps (a longer box divides tau and the number of independent values
    alike); linear below 3 tau the errors there are ~tau / sqrt(3 tau), still with mean 0 (on
@@ -86,10 +86,9 @@ short of sqrt(V) for V in (0, 3 tau), and no odd function of the estimate does m
 the box, which smooths away part of the spread between curves that step at different sub-step
 times where the spread is too close to the noise for the finer levels (step 6; off-chord faces,
 whose markers have their own dead times and no lag, still read -2 % at 3 trials and 0.05 mm);
-and the skew of the variance's
-noise with few markers (a few small markers dominate it). Where the true spread is below
-the noise of the smallest markers' normalised curves the estimate is no better than 0 to 2 x the
-truth (docs/indices.md).
+and the skew of the variance's noise with few markers (a few small markers dominate it). Where
+the true spread is below the noise of the smallest markers' normalised curves the estimate is no
+better than 0 to 2 x the truth (docs/indices.md).
 """
 
 from __future__ import annotations
