@@ -186,6 +186,8 @@ class DuPlant:
     markers : (Ma,) indices of the markers it moves.  halfwidths : (Ma, P) play half-widths,
     command units.  alpha, beta : (Ma,) its logistic (beta with the trial's bias shift).
     tau_s : actuator lag (0: none).  backlash : dead band half-width, command units (0: none).
+    stick_slip : the dead band releases with a jump (the stick-slip form) instead of trailing
+        the command (a play).
     weights : (P,) the plays' weights (the model's PI density; None: equal).
     mix, kappa : the model's branch parameters (:mod:`mocap.analysis.face_model`; 1 and 0: one
         sigmoid of the PI output).  offsets : (Ma, P) each play's sigmoid-centre offset
@@ -202,6 +204,7 @@ class DuPlant:
     weights: np.ndarray | None = None
     mix: float = 1.0
     offsets: np.ndarray | None = None
+    stick_slip: bool = False
 
     def response(self, plays: np.ndarray) -> np.ndarray:
         """Normalised responses (..., Ma) of play outputs (..., Ma, P), command units: the
@@ -219,11 +222,13 @@ class DuPlant:
 
 @dataclass
 class PlantState:
-    """State of one DU: actuator (lag) output a, backlash output b, plays (Ma, 5) (command units)."""
+    """State of one DU: actuator (lag) output a, backlash output b, plays (Ma, 5) (command units),
+    and the direction of the dead band's last motion (+1 up, -1 down; the stick-slip form)."""
 
     a: float
     b: float
     plays: np.ndarray
+    d: float = 1.0
 
 
 def plants(model: FaceModel, dus, trial: int = 1) -> list[DuPlant]:
@@ -248,8 +253,19 @@ def plants(model: FaceModel, dus, trial: int = 1) -> list[DuPlant]:
                            model.alpha[n, act], model.beta[n, act] + shift,
                            float(lag.value) if lag is not None else 0.0,
                            float(bl.value) if bl is not None else 0.0, q[keep] / q[keep].sum(),
-                           mix, offsets))
+                           mix, offsets, getattr(bl, "form", "play") == "stick-slip"))
     return out
+
+
+def _stick_slip_step(a: np.ndarray, b0: np.ndarray, d0: np.ndarray, halfwidth: float):
+    """The stick-slip dead band over one step's points a (C, J), from held outputs b0 (C,) and
+    directions d0 (C,): (b (C, J), d (C,) after the step). Exact as the actuator moves
+    monotonically within a step: once it follows or releases, it follows to the step's end."""
+    follow = (a - b0[:, None]) * d0[:, None] >= 0.0
+    release = np.logical_or.accumulate(~follow & (np.abs(a - b0[:, None]) >= 2.0 * halfwidth),
+                                       axis=1)
+    b = np.where(follow | release, a, b0[:, None])
+    return b, np.where(release[:, -1], -d0, d0)
 
 
 def rest_state(p: DuPlant) -> PlantState:
@@ -270,7 +286,7 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
     Returns
     -------
     y : (C, H * J, Ma) normalised responses at the points.
-    end : the state after the first step, (a (C,), b (C,), plays (C, Ma, 5)).
+    end : the state after the first step, (a (C,), b (C,), plays (C, Ma, 5), d (C,)).
     """
     durations_s = np.asarray(durations_s, float)
     H = durations_s.size
@@ -279,6 +295,7 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
     C = c.shape[0]
     a0 = np.full(C, state.a)
     b0 = np.full(C, state.b)
+    d0 = np.full(C, state.d)
     pl0 = np.broadcast_to(state.plays, (C,) + state.plays.shape)
     hw = p.halfwidths[None]
     fr = np.asarray(fractions, float)
@@ -293,12 +310,17 @@ def simulate_steps(p: DuPlant, state: PlantState, c: np.ndarray, durations_s: np
             a = ch[:, None] + (a0 - ch)[:, None] * np.exp(-s / p.tau_s)[None]  # (C, J)
         else:
             a = np.broadcast_to(ch[:, None], (C, s.size))
-        b = np.clip(b0[:, None], a - p.backlash, a + p.backlash) if p.backlash > 0 else a
+        if p.backlash > 0 and p.stick_slip:
+            b, d0 = _stick_slip_step(a, b0, d0, p.backlash)
+        elif p.backlash > 0:  # a play; exact as the actuator moves monotonically within a step
+            b = np.clip(b0[:, None], a - p.backlash, a + p.backlash)
+        else:
+            b = a
         plays = np.clip(pl0[:, None], b[..., None, None] - hw[:, None], b[..., None, None] + hw[:, None])
         ys.append(p.response(plays[:, :J]))  # (C, J, Ma)
         a0, b0, pl0 = a[:, -1].copy(), b[:, -1].copy(), plays[:, -1]
         if h == 0:
-            first = (a0, b0, pl0)
+            first = (a0, b0, pl0, d0.copy())
     return np.concatenate(ys, axis=1), first
 
 
@@ -456,8 +478,9 @@ def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) ->
             chosen[i, n] = best
         ys_step = []
         for n, p in enumerate(pb.plist):
-            y1, (a, b, pl) = simulate_steps(p, states[n], np.array([chosen[i, n]]), pb.dur[i:i + 1])
-            states[n] = PlantState(float(a[0]), float(b[0]), pl[0])
+            y1, (a, b, pl, d) = simulate_steps(p, states[n], np.array([chosen[i, n]]),
+                                               pb.dur[i:i + 1])
+            states[n] = PlantState(float(a[0]), float(b[0]), pl[0], float(d[0]))
             ys_step.append(y1[0])
         pred[i] = pb.normalised(ys_step)
     return chosen, pred

@@ -60,6 +60,7 @@ class Effect:
     n_bases: ClassVar[int] = 0  # extra path bases per curve
     pairwise: ClassVar[bool] = False  # adds a 3D vector per DU pair and marker (y_n y_n' terms)
     fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
+    command_grid: ClassVar[bool] = False  # a dead band: resolved to half a command step at best
     min_plausible: ClassVar[float] = 0.0  # |value| below this is no effect at all
     affects_curves: ClassVar[bool] = True  # False: single-DU takes do not depend on the value,
     #                                         so the curves are fitted once for its profile
@@ -201,6 +202,7 @@ class Backlash(Effect):
     bounds: ClassVar[tuple[float, float]] = (0.0, 50.0)
     # a dead band of a few units is what a branch shape the base cannot follow looks like
     min_plausible: ClassVar[float] = 3.0
+    command_grid: ClassVar[bool] = True
 
     def actuator(self, a, t, sampler):
         if self.value <= 0:
@@ -210,9 +212,34 @@ class Backlash(Effect):
         h = np.array([self.value])
         return np.column_stack([play_table(a[:, j], 1, h)[:, 0] for j in range(a.shape[1])])
 
+    form: ClassVar[str] = "play"
+
     def untestable(self, s):
         return (None if s.inner_reversals else
                 "no reversals inside the range (minor loops): a dead band hides inside hysteresis")
+
+    def describe(self):
+        return {**super().describe(), "form": self.form}
+
+
+@dataclass(frozen=True)
+class StickSlipBacklash(Backlash):
+    """A dead band that releases with a jump: after a reversal the actuator holds until the
+    command has come back 2 b, then jumps to the command (static friction in a gear or a cable
+    sheath; no lasting offset, unlike the play of :class:`Backlash`, whose output trails the
+    command by b). The other form of the backlash candidate: the workflow fits both and keeps the
+    one that predicts the held-out takes better (:data:`FORMS`)."""
+
+    meaning: ClassVar[str] = ("stick-slip dead band: after every command reversal the actuator "
+                              "holds until the command has come back 2 b, then jumps to it")
+    form: ClassVar[str] = "stick-slip"
+
+    def actuator(self, a, t, sampler):
+        if self.value <= 0:
+            return a
+        from mocap.analysis.play_kernel import stick_slip
+
+        return stick_slip(a, self.value)
 
 
 @dataclass(frozen=True)
@@ -360,6 +387,9 @@ CATALOGUE: dict[str, type[Effect]] = {
     cls.name: cls for cls in (Hysteresis, Lag, DeadTime, Backlash, Coupling, Drift, Saturation, Curvature,
                               TakeShift)
 }
+# a candidate's other forms (the same name and parameter, other equations): each is fitted and
+# the one that predicts the held-out takes better is kept
+FORMS: dict[str, tuple[type[Effect], ...]] = {"backlash": (Backlash, StickSlipBacklash)}
 BASE = ("hysteresis", "curvature", "takeshift")  # what every face has: the base model
 CANDIDATES = ("lag", "deadtime", "backlash", "coupling", "drift", "saturation")
 

@@ -101,6 +101,17 @@ class ModelData:
         if self.strong is None:
             self.strong = self.active.copy()
 
+    def command_step(self) -> float:
+        """The median nonzero change of a DU's command from one command row to the next
+        (command units): what a dead band's width is resolved to at best."""
+        if "command_step" not in self._tables:
+            steps = [np.abs(np.diff(g.sort_values("time_s", kind="stable")["command"].to_numpy(float)))
+                     for t in self.takes for _, g in t.rows.groupby("du")]
+            steps = np.concatenate(steps) if steps else np.zeros(0)
+            steps = steps[steps > 0]
+            self._tables["command_step"] = float(np.median(steps)) if steps.size else 0.0
+        return self._tables["command_step"]
+
     def samples(self, k: int) -> np.ndarray:
         return np.arange(0, self.takes[k].n_frames, self.stride)
 
@@ -112,7 +123,9 @@ class ModelData:
         return self._obs[k]
 
     def tables(self, k: int, effects) -> list[np.ndarray]:
-        sig = tuple((type(e).name, float(e.value)) for e in actuator_effects(effects))
+        # keyed by the effect's class: two forms of one effect (a first- and a second-order lag)
+        # with the same value make different tables
+        sig = tuple((type(e).__qualname__, float(e.value)) for e in actuator_effects(effects))
         key = (k, sig)
         if key not in self._tables:
             if len(self._tables) > 4 * len(self.takes):  # keep the cache to a few signatures
@@ -152,7 +165,8 @@ def _block(data: ModelData, du: int, takes, effects, markers: np.ndarray,
     ks = [k for k in takes if data.takes[k].dus == (du,)]
     if not ks:
         return None
-    outs = tuple((type(e).name, float(e.value)) for e in effects if type(e).stage == "output")
+    outs = tuple((type(e).__qualname__, float(e.value)) for e in effects
+                 if type(e).stage == "output")
     key = (du, tuple(ks), outs, markers.tobytes())
     if key not in data._blocks:
         V, W = [], []
@@ -278,7 +292,10 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
     DUs' shared ones (:func:`_update_density`); with ``takeshift``, each take's bias shift per DU
     (:func:`conditional_shifts`, centred per DU into the biases); these alternate with the
     curves (three rounds from cold, two from a warm start with ``iters`` >= 30; one round, the
-    density and shifts kept from ``warm``, inside profiles). With a pairwise effect
+    density and shifts kept from ``warm``, inside profiles). A warm fit with ``iters`` >= 30 then
+    polishes each DU's curves and branch parameters (and its density, where its takes hold minor
+    loops) together, :data:`JOINT_ROUNDS` times (:func:`_joint_round`): the alternation alone
+    creeps towards the optimum over tens of rounds. With a pairwise effect
     (``coupling``), the vectors C of every DU pair driven together in ``takes`` are fitted last
     by linear least squares on those takes.
     """
@@ -318,6 +335,15 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
         model = fits[int(np.argmin([sse(data, m, takes)[0] for m in fits]))]
     else:
         model = run(density, branch, shifts)
+        if hyst and warm is not None and rounds >= 2 and iters >= 30:
+            # the alternation creeps (a curve step holds the density, a density step the
+            # curves): polish both together, from where it stopped
+            for _ in range(JOINT_ROUNDS):
+                if shifting:
+                    model.take_shifts = _update_shifts(data, model, takes)
+                _joint_round(data, model, takes)
+                model = _fit_all_curves(data, effects, takes, model, 0, model.density,
+                                        model.take_shifts, model.branch)
     if any(type(e).pairwise for e in effects):
         _fit_pairs(data, model, takes)
     return model
@@ -560,6 +586,121 @@ def _du_cost(blk: _Block, p, model: FaceModel, n: int, act, q, branch=None) -> f
     return float(np.sum(_project(b, y, model.effects, b.v, b.wt)[2]))
 
 
+
+# ----------------------------------------------------------------------------------------------
+# joint polish: Levenberg-Marquardt over a DU's curves and its branch parameters (and density)
+# together, after the alternation
+
+JOINT_ROUNDS = 2  # joint polish rounds of a warm fit with iters >= 30 and 2 rounds or more
+JOINT_ITERS = 12  # joint steps per round at most
+JOINT_TOL = 1e-6  # relative cost decrease of an accepted step below which a DU has converged
+
+
+def _joint_normal(blk: _Block, p: np.ndarray, theta: np.ndarray, effects):
+    """A DU's Gauss-Newton normal equations in its strong curves' (alpha, beta, r) and its
+    (q (F,), mix, kappa), the linear path coefficients projected out (Kaufman's variable-projection
+    Jacobian: each parameter's column taken off its curve's basis span).
+
+    Returns (H (Ms, P, P), b (Ms, P)): per curve, the projected J^T W J and J^T W e over the
+    columns (alpha, beta, r, q, mix, kappa); the DU's shared block is their sum over curves."""
+    F = DENSITY_FRACTIONS.size
+    blk_t = _Block(blk.P, blk.shift, blk.v, blk.wt, theta[:F], blk.trial, theta[F:])
+    y, dy = _responses(blk_t, p, True, derivatives=True)
+    _, Jt = _mix_terms(blk_t, p, theta[:F], theta[F:])  # (S, F + 2, Ms)
+    coef, e, _ = _project(blk_t, y, effects, blk.v, blk.wt)
+    A = np.stack([y] + [b_ for ef in effects for b_ in ef.bases(y)], axis=-1)  # (S, Ms, k)
+    g = np.broadcast_to(coef[None, :, 0, :], e.shape)
+    kk = 1
+    for ef in effects:
+        for db in ef.bases_derivative(y):
+            g = g + db[..., None] * coef[None, :, kk, :]
+            kk += 1
+    Y = np.concatenate([dy, Jt.transpose(0, 2, 1)], axis=-1)  # (S, Ms, P): d y / d parameter
+    w = blk.wt
+    wg = g * w[..., None]  # (S, Ms, 3)
+    UU = np.einsum("sm,smi,smj->mij", np.einsum("smx,smx->sm", g, wg), Y, Y, optimize=True)
+    AU = np.einsum("smk,smx,smi->mxki", A, wg, Y, optimize=True)  # (Ms, 3, k, P)
+    G = np.einsum("smk,sm,sml->mkl", A, w, A, optimize=True) + 1e-9 * np.eye(A.shape[-1])
+    GiAU = np.linalg.solve(G[:, None], AU)
+    H = UU - np.einsum("mxki,mxkj->mij", AU, GiAU, optimize=True)
+    b = np.einsum("smi,sm->mi", Y, np.einsum("smx,smx->sm", wg, e), optimize=True)
+    return H, b
+
+
+def _joint_cost(blk: _Block, p: np.ndarray, theta: np.ndarray, effects) -> float:
+    F = DENSITY_FRACTIONS.size
+    b = _Block(blk.P, blk.shift, blk.v, blk.wt, theta[:F], blk.trial, theta[F:])
+    return float(np.sum(_project(b, _responses(b, p, True), effects, blk.v, blk.wt)[2]))
+
+
+def _joint_du(blk: _Block, p: np.ndarray, theta: np.ndarray, effects, free_density: bool,
+              iters: int = JOINT_ITERS, tol: float = JOINT_TOL) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt over one DU's strong curves p (Ms, 3) and theta = (q (F,), mix, kappa)
+    together (the density only with ``free_density``; on its simplex, the branch parameters in
+    :data:`BRANCH_BOUNDS`). The normal equations are an arrowhead (a 3 x 3 block per curve, a
+    dense border for theta): the curves are eliminated (Schur complement), theta's step solved
+    under its constraints, the curves' steps substituted back. Returns (p, theta)."""
+    F = DENSITY_FRACTIONS.size
+    border = np.arange(3, 3 + F + 2) if free_density else np.arange(3 + F, 3 + F + 2)
+    cost = _joint_cost(blk, p, theta, effects)
+    lam = 1e-3
+    for _ in range(iters):
+        H, b = _joint_normal(blk, p, theta, effects)
+        Hpp, Hpt = H[:, :3, :3], H[:, :3][:, :, border]
+        Htt = H[:, border][:, :, border].sum(axis=0)
+        bp, bt = b[:, :3], b[:, border].sum(axis=0)
+        step_taken = False
+        while lam < 1e8:
+            Hd = Hpp + lam * np.einsum("mii->mi", Hpp)[..., None] * np.eye(3) + 1e-12 * np.eye(3)
+            Hinv = np.linalg.inv(Hd)
+            W = np.einsum("mji,mjk->mik", Hpt, Hinv)  # (Ms, T, 3): Hpt^T Hpp^-1
+            S = Htt + lam * np.diag(np.diag(Htt)) - np.einsum("mik,mkj->ij", W, Hpt)
+            z = bt - np.einsum("mik,mk->i", W, bp)
+            S = 0.5 * (S + S.T)
+            new = theta.copy()
+            if free_density:
+                new = _theta_lsq(S, S @ theta + z)
+            else:
+                lo, hi = np.array(BRANCH_BOUNDS).T
+                new[F:] = np.clip(theta[F:] + np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(2), z),
+                                  lo, hi)
+            dth = (new - theta)[border - 3]
+            dp = np.einsum("mij,mj->mi", Hinv, bp - np.einsum("mij,j->mi", Hpt, dth))
+            q = p + dp
+            q[:, 0] = np.clip(q[:, 0], 1e-3, 0.5)
+            q[:, 1] = np.clip(q[:, 1], -100.0, 355.0)
+            q[:, 2] = np.clip(q[:, 2], 0.0, R_MAX)
+            c_new = _joint_cost(blk, q, new, effects)
+            if c_new < cost:
+                rel = (cost - c_new) / max(cost, 1e-300)
+                p, theta, cost = q, new, c_new
+                lam = max(lam / 4, 1e-9)
+                step_taken = True
+                break
+            lam *= 6
+        if not step_taken or rel < tol:
+            break
+    return p, theta
+
+
+def _joint_round(data: ModelData, model: FaceModel, takes) -> None:
+    """Every DU's strong curves and branch parameters by joint steps (:func:`_joint_du`), with
+    its density too where its training takes hold minor loops (elsewhere the density stays as
+    the alternation pulled it: full sweeps alone do not identify it); in place. The weak curves'
+    shapes and every path coefficient are refitted after (by the caller)."""
+    F = DENSITY_FRACTIONS.size
+    for n, du in enumerate(data.du_ids):
+        parts = _du_parts(data, model, takes, n, du)
+        if parts is None:
+            continue
+        blk, p, act = parts[:3]
+        minor = any(data.takes[k].dus == (du,) and _turns_inside(data, k) for k in takes)
+        theta = np.concatenate([model.density[n], model.branch[n]])
+        p_new, th = _joint_du(blk, p, theta, model.effects, minor)
+        model.alpha[n, act], model.beta[n, act], model.r[n, act] = p_new.T
+        model.density[n], model.branch[n] = th[:F], th[F:]
+
+
 def _update_shifts(data: ModelData, model: FaceModel, takes) -> dict:
     """Each training take's bias shift per DU (:func:`conditional_shifts`), centred per DU over
     its single-DU takes with the centre moved into the DU's biases (the same predictions)."""
@@ -735,6 +876,7 @@ class Profile:
     model: FaceModel
     n: int
     resolution: float = 0.0  # grid step of a grid-refined parameter (0: continuous)
+    interval: tuple[float, float] | None = None  # the values that fit equally well (a plateau)
 
 
 def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
@@ -786,6 +928,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     s_best, m_best = cache[best_key]
     if fixed is None:  # final polish of the curves at the chosen value
         m_best = fit_curves(data, m_best.effects, takes, warm=m_best, iters=30)
+    stage2 = False
     if fixed is None and refine and cls.stage == "actuator" and m_best.hysteresis:
         # the hysteresis density was fitted without this effect and absorbed part of it (a lag
         # widens the loops): profile again around the best value from the polished model
@@ -801,6 +944,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
                 cache2[key] = (sse(data, m, takes)[0], m)
             return cache2[key][0]
 
+        stage2 = span > 0
         if span > 0:
             evaluate2(best_key)
             minimize_scalar(evaluate2, bounds=(max(best_key - span, cls.bounds[0]),
@@ -812,9 +956,63 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
                 m_best = fit_curves(data, cache2[key2][1].effects, takes, warm=cache2[key2][1],
                                     iters=30)
     keys = sorted(cache)
-    # sampled data: a delay is resolved to the fine time grid at best
-    resolution = 1.0 / (data.fps * OVERSAMPLE) if cls.fine_grid else 0.0
-    return Profile(keys, [cache[k][0] for k in keys], float(best_key), m_best, count[0], resolution)
+    # sampled data: a delay is resolved to the fine time grid at best, a dead band's half-width
+    # to half a command step (the band of 2 b releases at a command row)
+    resolution = (1.0 / (data.fps * OVERSAMPLE) if cls.fine_grid else
+                  0.5 * data.command_step() if cls.command_grid else 0.0)
+    interval = None
+    if cls.command_grid and fixed is None:
+        # a dead band that releases at command rows fits the same for every width between two
+        # rows' thresholds: report that plateau and its centre, not whichever value was tried
+        if stage2:
+            interval = _plateau(evaluate2, cache2, best_key, cls.bounds, probes=keys)
+        else:
+            interval = _plateau(evaluate, cache, best_key, cls.bounds)
+        if interval is not None:
+            centre = 0.5 * (interval[0] + interval[1])
+            best_key = round(centre, 9)
+            m_best = m_best.with_effects(tuple(cls(centre) if type(e) is cls else e
+                                               for e in m_best.effects))
+            resolution = max(resolution, interval[1] - interval[0])
+    return Profile(keys, [cache[k][0] for k in keys], float(best_key), m_best, count[0], resolution,
+                   interval)
+
+
+def _plateau(evaluate, cache: dict, best: float, bounds: tuple[float, float], steps: int = 5,
+             rel: float = 1e-9, probes=()) -> tuple[float, float] | None:
+    """The interval around ``best`` over which the profiled SSE stays at its minimum (to
+    ``rel``), its edges located by bisection between the tried values (``steps`` each) and, where
+    no tried value on a side is off the minimum, the ``probes`` (evaluated as needed); None when
+    no other tried value is on the minimum (a smooth profile: no plateau)."""
+    smin = cache[round(best, 9)][0]
+
+    def flat(v: float) -> bool:
+        return evaluate(v) <= smin * (1.0 + rel)
+
+    if sum(cache[k][0] <= smin * (1.0 + rel) for k in cache) < 2:
+        return None
+    keys = sorted(set(cache) | {round(float(v), 9) for v in probes})
+    edges = []
+    for side in (-1, 1):
+        inner, outer = best, None
+        for k in (sorted((k for k in keys if k < best), reverse=True) if side < 0 else
+                  sorted(k for k in keys if k > best)):
+            if flat(k):
+                inner = k
+            else:
+                outer = k
+                break
+        if outer is None:
+            edges.append(bounds[0] if side < 0 else bounds[1])
+            continue
+        for _ in range(steps):
+            mid = 0.5 * (inner + outer)
+            if flat(mid):
+                inner = mid
+            else:
+                outer = mid
+        edges.append(0.5 * (inner + outer))
+    return float(edges[0]), float(edges[1])
 
 
 def profile_uncertainty(profile: Profile, n_eff: float) -> float:

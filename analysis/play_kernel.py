@@ -58,6 +58,33 @@ def play_table(a: np.ndarray, keep_every: int = 1, halfwidths: np.ndarray = HALF
 
 
 @njit(cache=True)
+def _stick_slip(a, halfwidth, out):
+    T, n = a.shape
+    for j in range(n):
+        held = 0.0  # from rest, last motion upwards
+        d = 1.0
+        for k in range(T):
+            x = a[k, j]
+            if (x - held) * d >= 0.0:
+                held = x
+            elif abs(x - held) >= 2.0 * halfwidth:
+                d = -d
+                held = x
+            out[k, j] = held
+
+
+def stick_slip(a: np.ndarray, halfwidth: float) -> np.ndarray:
+    """Stick-slip dead band of half-width ``halfwidth`` (command units) on inputs a (T, n) in
+    time order, from rest: the output follows the input while it keeps going the same way;
+    after a reversal it holds until the input has come back 2 halfwidth, then jumps to it (no
+    lasting offset, unlike a play). Returns (T, n) float64, command units."""
+    a2 = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(len(a), -1))
+    out = np.empty_like(a2)
+    _stick_slip(a2, float(halfwidth), out)
+    return out.reshape(np.shape(a))
+
+
+@njit(cache=True)
 def _pi_logistic(P, i0, lam_i, fr, wf, h_step, r, alpha, beta, shift, mix, kappa, want, y, dy):
     S, H = P.shape
     nf, M = i0.shape

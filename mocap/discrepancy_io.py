@@ -21,7 +21,7 @@ from mocap.analysis.discrepancy import (
     prepare,
     run_discrepancy,
 )
-from mocap.analysis.model_effects import CATALOGUE
+from mocap.analysis.model_effects import CATALOGUE, FORMS
 from mocap.atomic import write_text
 from mocap.discrepancy_input import load_measured
 
@@ -43,9 +43,12 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
         steps.append({
             "effect": s.effect,
             "named": s.named,
-            "meaning": CATALOGUE[s.effect].meaning,
+            "meaning": _meaning(s),
+            **({"form": s.form} if s.form else {}),
             "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
+            **({"interval": {k: [_r(a, 6), _r(b, 6)] for k, (a, b) in s.interval.items()}}
+               if s.interval else {}),
             "per_du": {str(du): _r(v, 6) for du, v in s.per_du.items()},
             "heldout_rms_before_mm": _r(s.heldout_rms_before_mm),
             "heldout_rms_after_mm": _r(s.heldout_rms_after_mm),
@@ -145,8 +148,10 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
             unit = CATALOGUE[s.effect].unit
             head = ("Named" if s.named else
                     "Kept in the model, not named (an alternative explains it as well)")
-            L += ["", f"**{head}: {s.effect}** ({CATALOGUE[s.effect].meaning}): " + ", ".join(
+            L += ["", f"**{head}: {s.effect}** ({_meaning(s)}): " + ", ".join(
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
+                + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}] fits alike: "
+                   "the band releases at the same command rows)" if k in s.interval else "")
                 for k, v in s.parameters.items()) +
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
             if s.per_du:
@@ -164,8 +169,20 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
           "k ln(n_eff) on held-out takes (n_eff: the residuals' effective sample size); an effect is "
           "named when its score is below -10, it explains at least 20 % of the held-out excess over "
           "the noise floor and removes at least 3 % of a noise floor from the held-out RMS, its "
-          "parameter is plausible in both folds and the takes can test it."]
+          "parameter is plausible in both folds and the takes can test it (the gain where it acts, "
+          "on the held-out residuals it moves by more than half the noise floor, is reported "
+          "beside: a dead band acts at reversals only). A candidate with "
+          "several forms (backlash: a play, a stick-slip dead band) is fitted in each and keeps "
+          "the form that predicts the held-out takes better."]
     return "\n".join(L) + "\n"
+
+
+def _meaning(s) -> str:
+    """The meaning of a step's effect in the form it was named in."""
+    for cls in FORMS.get(s.effect, ()):
+        if getattr(cls, "form", None) == s.form:
+            return cls.meaning
+    return CATALOGUE[s.effect].meaning
 
 
 def _evidence_row(e: dict) -> str:
@@ -177,7 +194,13 @@ def _evidence_row(e: dict) -> str:
         return (f"| {e['effect']} | | | | slope {e.get('slope', 0):.3g} per trial | "
                 f"{abs(e.get('t', 0)):.1f} standard errors of the takes' scatter |")
     fv = ", ".join(f"{v:.4g}" for v in e.get("fold_values", []))
-    note = "" if e.get("plausible", True) else "implausible value"
+    notes = [] if e.get("plausible", True) else ["implausible value"]
+    if e.get("form") and e["form"] != "play":
+        notes.append(f"form: {e['form']}")
+    loc = e.get("local") or {}
+    if loc.get("n"):
+        notes.append(f"where it acts ({loc['n']} residuals): explains {loc['explained']:.2f}")
+    note = "; ".join(notes)
     return (f"| {e['effect']} | {e['heldout_rms_mm']:.4f} | {e['score']:.1f} | "
             f"{e['explained']:.2f} | {fv} | {note} |")
 

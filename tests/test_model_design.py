@@ -114,6 +114,41 @@ def test_stepped_plant_matches_the_face_model(lag_face):
         assert np.max(np.abs(y[0] - y_model)) < 0.002, p.du
 
 
+@pytest.mark.parametrize("form", ["play", "stick-slip"])
+def test_stepped_plant_matches_the_face_model_with_a_dead_band(lag_face, form):
+    """The same with a dead band of 10 command units behind the lag, in either of its forms:
+    the stick-slip one holds after each reversal and releases with a jump (its state carries the
+    direction of the last motion from step to step)."""
+    from mocap.analysis.face_model import take_tables
+    from mocap.analysis.model_effects import Backlash, StickSlipBacklash
+
+    cls = StickSlipBacklash if form == "stick-slip" else Backlash
+    model = lag_face.model.with_effects(lag_face.model.effects + (cls(10.0),))
+    fps = model.fps
+    step_s = 4 / fps
+    rng = np.random.default_rng(2)
+    levels = np.clip(np.cumsum(rng.normal(0, 25, (80, len(DUS))), axis=0) + 120, 0, 255).astype(int)
+    t = np.arange(80) * step_s + 0.1
+    rows = pd.concat([pd.DataFrame({"time_s": np.r_[0.0, t], "du": d, "command": np.r_[0, levels[:, n]]})
+                      for n, d in enumerate(DUS)], ignore_index=True)
+    n_frames = int(round((t[-1] + step_s) * fps))
+    frac = np.array([0.25, 0.5, 0.75])
+    frames = np.round((t[:, None] + frac[None] * step_s) * fps).astype(int).ravel()
+    held = 0
+    for n, p in enumerate(plants(model, DUS)):
+        assert p.stick_slip == (form == "stick-slip") and p.backlash == 10.0
+        y, _ = simulate_steps(p, rest_state(p), levels[None, :, n].astype(float),
+                              np.full(80, step_s), frac)
+        tables = take_tables(rows[rows.du == p.du], [p.du], n_frames, fps, model.effects)
+        y_model = model.response(tables, [p.du], 1)[frames, 0][:, p.markers]
+        assert np.max(np.abs(y[0] - y_model)) < 0.002, p.du
+        # the dead band acted: the response differs from the model without it
+        plain = take_tables(rows[rows.du == p.du], [p.du], n_frames, fps, lag_face.model.effects)
+        held += int(np.max(np.abs(lag_face.model.response(plain, [p.du], 1)[frames, 0][:, p.markers]
+                                  - y_model)) > 0.01)
+    assert held == len(DUS)
+
+
 # ----------------------------------------------------------------------------------------------
 # the issue's criteria
 

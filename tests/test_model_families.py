@@ -54,32 +54,12 @@ def _session(tmp_path_factory, family, effect, seed=5, n_trials=3, form="alt"):
     return root, truth
 
 
-BOUCWEN_COUPLING = pytest.mark.xfail(
-    strict=True, reason="known limitation (issue #15): on Bouc-Wen loops with the alt coupling "
-    "law, kappa is read within 20 % and the coupling is named, but the held-out RMS stays at "
-    "about 1.65 x the noise floor (0.096 vs 0.058 mm; the target is 1.5 x)")
-BRANCHPLAY_COUPLING = pytest.mark.xfail(
-    strict=True, reason="known limitation (issue #15): with the blended-play base, the alt "
-    "coupling law (a product of the DUs' drives) on a branch-play face with off-chord paths is "
-    "named, but kappa reads 0.279 against 0.35 (20.3 % low; the PI-play base read 0.30); every "
-    "base variant tried read it low (0.19-0.31 on seeds 2 and 3); the multi-DU takes' bias "
-    "shifts (8-18 command units) seem to take part of it (docs/discrepancy.md)")
-BOUCWEN_LAG = pytest.mark.xfail(
-    strict=True, reason="known limitation (issue #15): on Bouc-Wen loops a second-order lag is "
-    "read within 20 % (0.079 and 0.058 s per fold against 0.08 s) but the held-out RMS stays at "
-    "about 1.7 x the noise floor: the minor-loop take of each DU is in one fold only, and the PI "
-    "density learnt from the other fold's full sweeps predicts Bouc-Wen minor loops at 4 x noise")
-
-
 @pytest.mark.parametrize("family", FAMILIES)
 @pytest.mark.parametrize("effect", ["lag", "coupling"])
-def test_hidden_effect_is_identified_on_a_foreign_family(tmp_path_factory, family, effect, request):
-    if family == "boucwen-bow" and effect == "lag":
-        request.applymarker(BOUCWEN_LAG)
-    if family == "boucwen-bow" and effect == "coupling":
-        request.applymarker(BOUCWEN_COUPLING)
-    if family == "branchplay-offchord" and effect == "coupling":
-        request.applymarker(BRANCHPLAY_COUPLING)
+def test_hidden_effect_is_identified_on_a_foreign_family(tmp_path_factory, family, effect):
+    """(Three of the four cases were known limitations until the base fit's joint polish:
+    Bouc-Wen lag and coupling held out at 1.65-1.7 x the noise floor, the branch-play coupling's
+    kappa read 20 % low.)"""
     root, truth = _session(tmp_path_factory, family, effect)
     prep = _prepared(root)
     data, floor = prep.data, prep.noise_floor_mm
