@@ -225,6 +225,18 @@ def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray)
     return coef, em.transpose(1, 0, 2), cost
 
 
+def _dpred_dy(y: np.ndarray, coef: np.ndarray, effects) -> np.ndarray:
+    """d pred / d y (S, M, 3) of the path d = y D + sum_k b_k(y) B_k: D + sum_k b_k'(y) B_k, for
+    responses y (S, M) and coefficients coef (M, K + 1, 3) = [D, B_1, ...]."""
+    g = np.broadcast_to(coef[None, :, 0, :], y.shape + (3,))
+    kk = 1
+    for ef in effects:
+        for db in ef.bases_derivative(y):
+            g = g + db[..., None] * coef[None, :, kk, :]
+            kk += 1
+    return g
+
+
 def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30,
                tol: float = 1e-6):
     """Levenberg-Marquardt over (alpha, beta[, r]) per curve; returns (p, coef, cost)."""
@@ -236,12 +248,7 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
     lam = np.full(p.shape[0], 1e-3)
     for _ in range(iters):
         # d pred / dp_j = dy/dp_j * g,  g = coef_0 + sum_k basis_k'(y) coef_k   (Kaufman)
-        g = np.broadcast_to(coef[None, :, 0, :], e.shape)
-        kk = 1
-        for ef in effects:
-            for db in ef.bases_derivative(y):
-                g = g + db[..., None] * coef[None, :, kk, :]
-                kk += 1
+        g = _dpred_dy(y, coef, effects)
         ge = np.einsum("smx,smx->sm", g, e) * wt
         gg = np.einsum("smx,smx->sm", g, g) * wt
         J = np.ascontiguousarray(dy[..., :npar].transpose(1, 0, 2))  # (M, S, P)
@@ -609,12 +616,7 @@ def _joint_normal(blk: _Block, p: np.ndarray, theta: np.ndarray, effects):
     _, Jt = _mix_terms(blk_t, p, theta[:F], theta[F:])  # (S, F + 2, Ms)
     coef, e, _ = _project(blk_t, y, effects, blk.v, blk.wt)
     A = np.stack([y] + [b_ for ef in effects for b_ in ef.bases(y)], axis=-1)  # (S, Ms, k)
-    g = np.broadcast_to(coef[None, :, 0, :], e.shape)
-    kk = 1
-    for ef in effects:
-        for db in ef.bases_derivative(y):
-            g = g + db[..., None] * coef[None, :, kk, :]
-            kk += 1
+    g = _dpred_dy(y, coef, effects)
     Y = np.concatenate([dy, Jt.transpose(0, 2, 1)], axis=-1)  # (S, Ms, P): d y / d parameter
     w = blk.wt
     wg = g * w[..., None]  # (S, Ms, 3)

@@ -90,22 +90,30 @@ def assert_valid_command_file(rows: pd.DataFrame, step_s: float, dus=DUS):
 # the stepped plant is the face model
 
 
+def _random_steps(fps: float, n_steps: int, sd: float, seed: int):
+    """Random-walk commands of every DU, one command step every 4 frames from 0.1 s: (step_s,
+    levels (n_steps, n_dus), rows, n_frames, fractions inside a step, the frames at them)."""
+    step_s = 4 / fps
+    rng = np.random.default_rng(seed)
+    levels = np.clip(np.cumsum(rng.normal(0, sd, (n_steps, len(DUS))), axis=0) + 120, 0,
+                     255).astype(int)
+    t = np.arange(n_steps) * step_s + 0.1
+    rows = pd.concat([pd.DataFrame({"time_s": np.r_[0.0, t], "du": d, "command": np.r_[0, levels[:, n]]})
+                      for n, d in enumerate(DUS)], ignore_index=True)
+    n_frames = int(round((t[-1] + step_s) * fps))
+    frac = np.array([0.25, 0.5, 0.75])
+    frames = np.round((t[:, None] + frac[None] * step_s) * fps).astype(int).ravel()
+    return step_s, levels, rows, n_frames, frac, frames
+
+
 def test_stepped_plant_matches_the_face_model(lag_face):
     """Stepping the model between command steps gives the model's own response to random
     commands (hysteresis with reversals everywhere, and the lag), read at frames inside the steps."""
     from mocap.analysis.face_model import take_tables
 
     model = lag_face.model
+    step_s, levels, rows, n_frames, frac, frames = _random_steps(model.fps, 60, 40.0, seed=1)
     fps = model.fps
-    step_s = 4 / fps
-    rng = np.random.default_rng(1)
-    levels = np.clip(np.cumsum(rng.normal(0, 40, (60, len(DUS))), axis=0) + 120, 0, 255).astype(int)
-    t = np.arange(60) * step_s + 0.1
-    rows = pd.concat([pd.DataFrame({"time_s": np.r_[0.0, t], "du": d, "command": np.r_[0, levels[:, n]]})
-                      for n, d in enumerate(DUS)], ignore_index=True)
-    n_frames = int(round((t[-1] + step_s) * fps))
-    frac = np.array([0.25, 0.5, 0.75])
-    frames = np.round((t[:, None] + frac[None] * step_s) * fps).astype(int).ravel()
     for n, p in enumerate(plants(model, DUS)):
         y, _ = simulate_steps(p, rest_state(p), levels[None, :, n].astype(float),
                               np.full(60, step_s), frac)
@@ -124,16 +132,8 @@ def test_stepped_plant_matches_the_face_model_with_a_dead_band(lag_face, form):
 
     cls = StickSlipBacklash if form == "stick-slip" else Backlash
     model = lag_face.model.with_effects(lag_face.model.effects + (cls(10.0),))
+    step_s, levels, rows, n_frames, frac, frames = _random_steps(model.fps, 80, 25.0, seed=2)
     fps = model.fps
-    step_s = 4 / fps
-    rng = np.random.default_rng(2)
-    levels = np.clip(np.cumsum(rng.normal(0, 25, (80, len(DUS))), axis=0) + 120, 0, 255).astype(int)
-    t = np.arange(80) * step_s + 0.1
-    rows = pd.concat([pd.DataFrame({"time_s": np.r_[0.0, t], "du": d, "command": np.r_[0, levels[:, n]]})
-                      for n, d in enumerate(DUS)], ignore_index=True)
-    n_frames = int(round((t[-1] + step_s) * fps))
-    frac = np.array([0.25, 0.5, 0.75])
-    frames = np.round((t[:, None] + frac[None] * step_s) * fps).astype(int).ravel()
     held = 0
     for n, p in enumerate(plants(model, DUS)):
         assert p.stick_slip == (form == "stick-slip") and p.backlash == 10.0
