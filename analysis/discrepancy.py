@@ -464,31 +464,31 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
 LOCAL_CHANGE = 0.5  # x noise floor: a candidate acts where it moves the prediction this much
 
 
+NO_LOCAL = {"n": 0, "explained": 0.0, "rms_gain_vs_noise": 0.0}
+
+
 def local_gain(before: list[np.ndarray], after: list[np.ndarray], used: np.ndarray,
                floor: float, change: float = LOCAL_CHANGE) -> dict:
-    """A candidate's gain where it acts: over the held-out residual vectors that it moves by more
-    than ``change`` x the noise floor, their RMS before and after (mm) and the fraction of their
-    excess over the noise floor it removes. An effect that acts in a few places (a dead band at
+    """A candidate's gain where it acts: over the held-out residual vectors (per take (S, M, 3),
+    mm) that it moves by more than ``change`` x the noise floor, how many (``n``), the fraction
+    of their excess over the noise floor it removes (``explained``) and the RMS it removes over
+    the noise floor (``rms_gain_vs_noise``). An effect that acts in a few places (a dead band at
     reversals) is plain there and invisible in the whole session's RMS."""
     a0 = a1 = 0.0
     n = 0
-    total = 0
     for e0, e1 in zip(before, after):
         u0, u1 = e0[:, used], e1[:, used]
         moved = np.linalg.norm(u1 - u0, axis=-1)
         m = np.isfinite(moved) & (moved > change * floor)
-        total += int(np.isfinite(moved).sum())
         a0 += float(np.sum(u0[m] ** 2))
         a1 += float(np.sum(u1[m] ** 2))
         n += int(m.sum())
     if n == 0:
-        return {"n": 0, "fraction": 0.0, "rms_before_mm": float("nan"), "rms_after_mm": float("nan"),
-                "explained": 0.0}
+        return dict(NO_LOCAL)
     mse0, mse1 = a0 / n, a1 / n
     excess = mse0 - floor ** 2
-    return {"n": n, "fraction": n / max(total, 1), "rms_before_mm": float(np.sqrt(mse0)),
-            "rms_after_mm": float(np.sqrt(mse1)),
-            "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0}
+    return {"n": n, "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0,
+            "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor)}
 
 
 _WORKER_DATA: ModelData | None = None
@@ -559,6 +559,7 @@ class Step:
     named: bool = True  # False: kept in the model, but an alternative explains it as well
     form: str | None = None  # the effect's form, where it has several (backlash: play, stick-slip)
     interval: dict = field(default_factory=dict)  # parameter -> [lo, hi] that fit equally well
+    meaning: str = ""  # what the effect is, in the form it was named in
 
 
 @dataclass
@@ -766,8 +767,9 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         stages.append(_stage(data, current, res, floor, model_label, prep.phase_labels))
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
                           per_du, named=not alt, form=getattr(cls, "form", None),
+                          meaning=cls.meaning,
                           interval=({cls.parameter: [float(v) for v in prof.interval]}
-                                    if getattr(prof, "interval", None) else {})))
+                                    if prof.interval else {})))
         say(f"{'kept' if alt else 'named'} {name} {params}: held-out RMS {before:.4f} -> "
             f"{current.rms_mm:.4f} mm")
     # drift last: the trend of the takes' bias shifts, read from the final model (an effect still
@@ -804,15 +806,12 @@ def candidate_evidence(name: str, cv: CVFit, current: CVFit, floor: float, n_eff
     # with take shifts the base can fit under the trial noise floor: then any gain counts
     explained = (mse_cur - mse) / excess if excess > 0 else 1.0
     plausible = all(CATALOGUE[name](v).plausible() for v in (cv.values or [0.0]))
-    loc = cv.local
     return {"effect": name, "testable": True, "score": float(score),
             "heldout_rms_mm": cv.rms_mm, "explained": float(explained),
             "rms_gain_vs_noise": float((current.rms_mm - cv.rms_mm) / floor),
             "fold_values": [float(v) for v in cv.values], "plausible": bool(plausible),
             "form": getattr(cv.cls, "form", None) if cv.cls is not None else None,
-            "local": {"n": int(loc.get("n", 0)), "explained": float(loc.get("explained", 0.0)),
-                      "rms_gain_vs_noise": float((loc["rms_before_mm"] - loc["rms_after_mm"]) / floor)
-                      if loc.get("n") else 0.0}}
+            "local": dict(cv.local or NO_LOCAL)}
 
 
 def passes(e: dict, settings: DiscrepancySettings) -> bool:
@@ -821,7 +820,7 @@ def passes(e: dict, settings: DiscrepancySettings) -> bool:
     the whole session or where it acts."""
     if not e.get("testable") or e.get("screened_out"):
         return False
-    loc = e.get("local") or {"n": 0, "explained": 0.0, "rms_gain_vs_noise": 0.0}
+    loc = e.get("local") or NO_LOCAL
     overall = (e["explained"] >= settings.min_explained
                and e["rms_gain_vs_noise"] >= settings.min_rms_gain)
     local = (settings.local and loc["n"] >= settings.local_min_n

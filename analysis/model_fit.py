@@ -18,6 +18,7 @@ is piecewise constant at that scale).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import pandas as pd
@@ -101,16 +102,15 @@ class ModelData:
         if self.strong is None:
             self.strong = self.active.copy()
 
+    @cached_property
     def command_step(self) -> float:
         """The median nonzero change of a DU's command from one command row to the next
         (command units): what a dead band's width is resolved to at best."""
-        if "command_step" not in self._tables:
-            steps = [np.abs(np.diff(g.sort_values("time_s", kind="stable")["command"].to_numpy(float)))
-                     for t in self.takes for _, g in t.rows.groupby("du")]
-            steps = np.concatenate(steps) if steps else np.zeros(0)
-            steps = steps[steps > 0]
-            self._tables["command_step"] = float(np.median(steps)) if steps.size else 0.0
-        return self._tables["command_step"]
+        steps = [np.abs(np.diff(g.sort_values("time_s", kind="stable")["command"].to_numpy(float)))
+                 for t in self.takes for _, g in t.rows.groupby("du")]
+        steps = np.concatenate(steps) if steps else np.zeros(0)
+        steps = steps[steps > 0]
+        return float(np.median(steps)) if steps.size else 0.0
 
     def samples(self, k: int) -> np.ndarray:
         return np.arange(0, self.takes[k].n_frames, self.stride)
@@ -213,7 +213,7 @@ def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray)
 
     Per curve m, with the basis A_m = [y, bases(y)] (S, K+1) and weights w: the normal
     equations (A^T W A + 1e-9 I) c = A^T W v, as batched matrix products over curves."""
-    A = np.stack([y] + [b for e in effects for b in e.bases(y)], axis=-1)  # (S, M, k)
+    A = _path_basis(y, effects)  # (S, M, k)
     k = A.shape[-1]
     Am = np.ascontiguousarray(A.transpose(1, 0, 2))  # (M, S, k)
     wAm = Am * wt.T[..., None]
@@ -223,6 +223,11 @@ def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray)
     em = vm - np.matmul(Am, coef)  # (M, S, 3)
     cost = np.einsum("msx,ms->m", em * em, wt.T)
     return coef, em.transpose(1, 0, 2), cost
+
+
+def _path_basis(y: np.ndarray, effects) -> np.ndarray:
+    """The path's basis (S, M, K + 1) of responses y (S, M): [y, b_1(y), ...]."""
+    return np.stack([y] + [b for e in effects for b in e.bases(y)], axis=-1)
 
 
 def _dpred_dy(y: np.ndarray, coef: np.ndarray, effects) -> np.ndarray:
@@ -537,6 +542,11 @@ def _turns_inside(data: ModelData, k: int) -> bool:
     return data._tables[key]
 
 
+def _has_minor_loops(data: ModelData, du: int, takes) -> bool:
+    """Whether a single-DU take of ``du`` among ``takes`` turns back inside the range."""
+    return any(data.takes[k].dus == (du,) and _turns_inside(data, k) for k in takes)
+
+
 def _update_density(data: ModelData, model: FaceModel, takes):
     """One projected Gauss-Newton step of each DU's density q (F,) (q >= 0, sum 1) and branch
     parameters (mix, kappa), with a halving line search on the training cost; the curves held.
@@ -559,13 +569,12 @@ def _update_density(data: ModelData, model: FaceModel, takes):
             probs[n] = pr
     if not probs:
         return dens, br
-    minor = {n: any(data.takes[k].dus == (data.du_ids[n],) and _turns_inside(data, k)
-                    for k in takes) for n in probs}
+    minor = {n: _has_minor_loops(data, data.du_ids[n], takes) for n in probs}
     teach = [n for n in probs if minor[n]] or list(probs)
     sc = {n: np.trace(A[:F, :F]) / F + 1e-300 for n, (A, _, _) in probs.items()}
     shared = _theta_lsq(sum(probs[n][0] / sc[n] for n in teach),
                         sum(probs[n][1] / sc[n] for n in teach))
-    for n, (A, z, (blk, p, act)) in probs.items():
+    for n, (A, z, (blk, p, _)) in probs.items():
         # the density only: each DU keeps its own branch parameters (the shape of its forward
         # and backward branches, which its full sweeps do show); pulling them too read a
         # hidden coupling 20 % lower on a branch-play face
@@ -573,9 +582,8 @@ def _update_density(data: ModelData, model: FaceModel, takes):
         theta = np.concatenate([model.density[n], model.branch[n]])
         new = _theta_lsq(A + np.diag(mu), z + mu * shared)
 
-        def cost(th, blk=blk, p=p, n=n, act=act, mu=mu):
-            return (_du_cost(blk, p, model, n, act, th[:F], th[F:])
-                    + float(np.sum(mu * (th - shared) ** 2)))
+        def cost(th, blk=blk, p=p, mu=mu):
+            return _du_cost(blk, p, th, model.effects) + float(np.sum(mu * (th - shared) ** 2))
 
         c0 = cost(theta)
         for _ in range(5):
@@ -586,11 +594,12 @@ def _update_density(data: ModelData, model: FaceModel, takes):
     return dens, br
 
 
-def _du_cost(blk: _Block, p, model: FaceModel, n: int, act, q, branch=None) -> float:
-    b = _Block(blk.P, blk.shift, blk.v, blk.wt, q, blk.trial,
-               model.branch[n] if branch is None else branch)
-    y = _responses(b, p, True)
-    return float(np.sum(_project(b, y, model.effects, b.v, b.wt)[2]))
+def _du_cost(blk: _Block, p: np.ndarray, theta: np.ndarray, effects) -> float:
+    """A DU's training cost (mm^2) with its strong curves p (Ms, 3) and theta = (q (F,), mix,
+    kappa), the path coefficients projected out."""
+    F = DENSITY_FRACTIONS.size
+    b = _Block(blk.P, blk.shift, blk.v, blk.wt, theta[:F], blk.trial, theta[F:])
+    return float(np.sum(_project(b, _responses(b, p, True), effects, blk.v, blk.wt)[2]))
 
 
 
@@ -615,7 +624,7 @@ def _joint_normal(blk: _Block, p: np.ndarray, theta: np.ndarray, effects):
     y, dy = _responses(blk_t, p, True, derivatives=True)
     _, Jt = _mix_terms(blk_t, p, theta[:F], theta[F:])  # (S, F + 2, Ms)
     coef, e, _ = _project(blk_t, y, effects, blk.v, blk.wt)
-    A = np.stack([y] + [b_ for ef in effects for b_ in ef.bases(y)], axis=-1)  # (S, Ms, k)
+    A = _path_basis(y, effects)  # (S, Ms, k)
     g = _dpred_dy(y, coef, effects)
     Y = np.concatenate([dy, Jt.transpose(0, 2, 1)], axis=-1)  # (S, Ms, P): d y / d parameter
     w = blk.wt
@@ -629,12 +638,6 @@ def _joint_normal(blk: _Block, p: np.ndarray, theta: np.ndarray, effects):
     return H, b
 
 
-def _joint_cost(blk: _Block, p: np.ndarray, theta: np.ndarray, effects) -> float:
-    F = DENSITY_FRACTIONS.size
-    b = _Block(blk.P, blk.shift, blk.v, blk.wt, theta[:F], blk.trial, theta[F:])
-    return float(np.sum(_project(b, _responses(b, p, True), effects, blk.v, blk.wt)[2]))
-
-
 def _joint_du(blk: _Block, p: np.ndarray, theta: np.ndarray, effects, free_density: bool,
               iters: int = JOINT_ITERS, tol: float = JOINT_TOL) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt over one DU's strong curves p (Ms, 3) and theta = (q (F,), mix, kappa)
@@ -644,7 +647,7 @@ def _joint_du(blk: _Block, p: np.ndarray, theta: np.ndarray, effects, free_densi
     under its constraints, the curves' steps substituted back. Returns (p, theta)."""
     F = DENSITY_FRACTIONS.size
     border = np.arange(3, 3 + F + 2) if free_density else np.arange(3 + F, 3 + F + 2)
-    cost = _joint_cost(blk, p, theta, effects)
+    cost = _du_cost(blk, p, theta, effects)
     lam = 1e-3
     for _ in range(iters):
         H, b = _joint_normal(blk, p, theta, effects)
@@ -672,7 +675,7 @@ def _joint_du(blk: _Block, p: np.ndarray, theta: np.ndarray, effects, free_densi
             q[:, 0] = np.clip(q[:, 0], 1e-3, 0.5)
             q[:, 1] = np.clip(q[:, 1], -100.0, 355.0)
             q[:, 2] = np.clip(q[:, 2], 0.0, R_MAX)
-            c_new = _joint_cost(blk, q, new, effects)
+            c_new = _du_cost(blk, q, new, effects)
             if c_new < cost:
                 rel = (cost - c_new) / max(cost, 1e-300)
                 p, theta, cost = q, new, c_new
@@ -696,9 +699,8 @@ def _joint_round(data: ModelData, model: FaceModel, takes) -> None:
         if parts is None:
             continue
         blk, p, act = parts[:3]
-        minor = any(data.takes[k].dus == (du,) and _turns_inside(data, k) for k in takes)
         theta = np.concatenate([model.density[n], model.branch[n]])
-        p_new, th = _joint_du(blk, p, theta, model.effects, minor)
+        p_new, th = _joint_du(blk, p, theta, model.effects, _has_minor_loops(data, du, takes))
         model.alpha[n, act], model.beta[n, act], model.r[n, act] = p_new.T
         model.density[n], model.branch[n] = th[:F], th[F:]
 
@@ -961,7 +963,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     # sampled data: a delay is resolved to the fine time grid at best, a dead band's half-width
     # to half a command step (the band of 2 b releases at a command row)
     resolution = (1.0 / (data.fps * OVERSAMPLE) if cls.fine_grid else
-                  0.5 * data.command_step() if cls.command_grid else 0.0)
+                  0.5 * data.command_step if cls.command_grid else 0.0)
     interval = None
     if cls.command_grid and fixed is None:
         # a dead band that releases at command rows fits the same for every width between two

@@ -21,7 +21,7 @@ from mocap.analysis.discrepancy import (
     prepare,
     run_discrepancy,
 )
-from mocap.analysis.model_effects import CATALOGUE, FORMS
+from mocap.analysis.model_effects import CATALOGUE
 from mocap.atomic import write_text
 from mocap.discrepancy_input import load_measured
 
@@ -43,7 +43,7 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
         steps.append({
             "effect": s.effect,
             "named": s.named,
-            "meaning": _meaning(s),
+            "meaning": (s.meaning or CATALOGUE[s.effect].meaning),
             **({"form": s.form} if s.form else {}),
             "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
@@ -148,7 +148,7 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
             unit = CATALOGUE[s.effect].unit
             head = ("Named" if s.named else
                     "Kept in the model, not named (an alternative explains it as well)")
-            L += ["", f"**{head}: {s.effect}** ({_meaning(s)}): " + ", ".join(
+            L += ["", f"**{head}: {s.effect}** ({(s.meaning or CATALOGUE[s.effect].meaning)}): " + ", ".join(
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
                 + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}] fits alike: "
                    "the band releases at the same command rows)" if k in s.interval else "")
@@ -175,14 +175,6 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
           "several forms (backlash: a play, a stick-slip dead band) is fitted in each and keeps "
           "the form that predicts the held-out takes better."]
     return "\n".join(L) + "\n"
-
-
-def _meaning(s) -> str:
-    """The meaning of a step's effect in the form it was named in."""
-    for cls in FORMS.get(s.effect, ()):
-        if getattr(cls, "form", None) == s.form:
-            return cls.meaning
-    return CATALOGUE[s.effect].meaning
 
 
 def _evidence_row(e: dict) -> str:

@@ -84,7 +84,7 @@ def test_backlash_candidate_keeps_the_form_and_width_of_the_truth(dead_band_face
     assert cand is not None, "the dead band gave no held-out gain"
     assert cand.cls is StickSlipBacklash, cand.cls
     b = truth["parameters"]["halfwidth"]
-    step = prep.data.command_step()
+    step = prep.data.command_step
     for value, interval in zip(cand.values, cand.intervals):
         assert interval is not None and interval[0] <= b <= interval[1], (interval, b)
         assert interval[1] - interval[0] <= step + 0.5, (interval, step)
