@@ -13,14 +13,16 @@ name the missing effect, add it, show the gap shrink.
    schedules alternate between folds, :func:`assign_folds`), scored by a held-out BIC,
    ``n_eff ln(SSE_cand / SSE_cur) + dk ln(n_eff)`` with ``n_eff`` the residuals' effective
    sample size (their lag-1 autocorrelation discounts the samples).
-5. Name the best candidate when its score beats the current model by ``margin`` (10), it
+   A candidate is scored against its null: the effect at 0 fitted along the same path (the
+   same warm start, iterations and polish), so a fit's extra polish is not read as the effect.
+5. Name the best candidate when its score beats its null by ``margin`` (10), it
    explains at least ``min_explained`` (20 %) of the held-out excess over the noise floor and
    removes at least ``min_rms_gain`` (3 %) of a noise floor from the held-out RMS (with
    ``local``, off by default: or does as much where it acts, :func:`local_gain`), its
    parameter is physically plausible in both folds, and the
    session's takes can test it; else "no missing effect found". A candidate with several forms
    (:data:`mocap.analysis.model_effects.FORMS`: backlash as a play or a stick-slip dead band) is
-   fitted in each and keeps the one that predicts the held-out takes better.
+   fitted in each and keeps the one that gains the most on its own null in held-out takes.
 6. Add it and repeat (forward stepwise; a named effect's parameter is re-identified on all
    takes, with its uncertainty from the profile). Drift last, from the final model: the trend
    over trials of the takes' bias shifts (:func:`drift_step`), named when it stands out of the
@@ -89,11 +91,13 @@ class DiscrepancySettings:
         residual vectors it moves by more than half the noise floor, at least ``local_min_n`` of
         them), it removes at least ``local_explained`` of the excess over the noise floor and
         ``local_gain`` x the noise floor from the RMS. An effect that acts in a few places (a dead
-        band at reversals) is plain there and lost in the session's RMS; but so is what a
-        candidate's extra polish of the curves gains over the base (on a Preisach face with
+        band at reversals) is plain there and lost in the session's RMS. Off by default until
+        a wider sweep shows it names nothing on faces with nothing hidden: scored against the
+        base, a candidate's extra polish of the curves was local too (on a Preisach face with
         nothing hidden a lag of 0 s explained 69-77 % of the excess on the 326-717 residual
-        vectors it moved), so it stays off until the base is converged as far as a candidate's
-        fit. The numbers are reported in every candidate's evidence either way.
+        vectors it moved); scored against its own null (:func:`cv_candidate`) no face with
+        nothing hidden came near it (3 faces), and one hidden play on a 4-DU face would pass it.
+        The numbers are reported in every candidate's evidence either way.
     max_steps : effects to add at most.
     jobs : processes over candidates (spawned; 1 runs in this process).
     """
@@ -354,6 +358,8 @@ class CVFit:
     local: dict = field(default_factory=dict)  # where the candidate acts (:func:`local_gain`)
     intervals: list = field(default_factory=list)  # per fold: the values that fit alike, or None
     residuals: list | None = field(default=None, repr=False)  # held-out residuals, if kept
+    null: "CVFit | None" = field(default=None, repr=False)  # a candidate at its null value,
+    #                                                          fitted along the candidate's path
 
     @property
     def rms_mm(self) -> float:
@@ -428,37 +434,41 @@ def cv_base(data: ModelData, effects) -> CVFit:
 
 def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
                  floor: float | None = None) -> CVFit | None:
-    """The candidate fitted on each fold and scored on the other; None when the fit on fold 0
-    does not lower the held-out SSE of fold 1 at all (screened out: not fitted on fold 1).
+    """The candidate fitted on each fold and scored on the other, beside its null (the effect
+    at 0 fitted along the same path, ``CVFit.null``: the reference its evidence is scored
+    against, :func:`candidate_evidence`); None when the fit on fold 0 does not lower the
+    held-out SSE of fold 1 below its null's (screened out: not fitted on fold 1).
     ``cls`` : the effect class (default: each of the candidate's forms, :data:`FORMS`, the one
-    with the lower held-out SSE kept: a form's training fit can win by fitting noise, a play of
-    2 units read on one fold lowered its training SSE below the stick-slip band's and doubled
-    its held-out excess).  ``floor`` : the noise floor (mm);
+    with the larger held-out gain on its null kept: a form's training fit can win by fitting
+    noise, a play of 2 units read on one fold lowered its training SSE below the stick-slip
+    band's and doubled its held-out excess).  ``floor`` : the noise floor (mm);
     given, the fit's gain where it acts is measured too (:func:`local_gain`)."""
     forms = (cls,) if cls is not None else FORMS.get(name, (CATALOGUE[name],))
     best = None
     for form in forms:
-        models, values, intervals = [], [], []
+        models, nulls, values, intervals = [], [], [], []
         for f in (0, 1):
-            prof = profile_effect(data, current.models[f], form(), fold_takes(data, f))
+            prof = profile_effect(data, current.models[f], form(), fold_takes(data, f), null=True)
             models.append(prof.model)
+            nulls.append(prof.null)
             intervals.append(prof.interval)
             values.append(prof.model.parameters()[form.parameter] if form.per_curve else prof.best)
-            if f == 0 and fold_sse(data, prof.model, 1) >= fold_sse(data, current.models[0], 1):
+            if f == 0 and fold_sse(data, prof.model, 1) >= fold_sse(data, prof.null, 1):
                 models = None
                 break
         if models is not None:
             s, n, res = heldout(data, models)
-            if best is None or s < best[0]:
-                best = (s, n, res, form, models, values, intervals)
+            s0, n0, res0 = heldout(data, nulls)
+            # the form that gains the most on its own null (forms share none of their path)
+            gain = s / s0
+            if best is None or gain < best[0]:
+                best = (gain, s, n, res, form, models, values, intervals,
+                        CVFit(nulls, s0, n0, residuals=res0))
     if best is None:
         return None
-    s, n, res, form, models, values, intervals = best
-    local = {}
-    if floor is not None:
-        before = current.residuals if current.residuals is not None else heldout(data, current.models)[2]
-        local = local_gain(before, res, data.used, floor)
-    return CVFit(models, s, n, values, form, local, intervals)
+    _, s, n, res, form, models, values, intervals, null = best
+    local = local_gain(null.residuals, res, data.used, floor) if floor is not None else {}
+    return CVFit(models, s, n, values, form, local, intervals, null=null)
 
 
 LOCAL_CHANGE = 0.5  # x noise floor: a candidate acts where it moves the prediction this much
@@ -795,10 +805,12 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
 
 
 def candidate_evidence(name: str, cv: CVFit, current: CVFit, floor: float, n_eff: float) -> dict:
-    """A fitted candidate's evidence against the current model: its held-out BIC score, the
+    """A fitted candidate's evidence against its null (``cv.null``: the candidate at 0 fitted
+    along its own path; the current model when it has none): its held-out BIC score, the
     fraction of the held-out excess over the noise floor it explains and the RMS it removes (in
     the whole session and where it acts, :func:`local_gain`), its fold values and whether they
     are plausible, and the form it was fitted in."""
+    current = cv.null if cv.null is not None else current
     score = n_eff * np.log(cv.sse / current.sse) + n_parameters(cv.models[0], name) * np.log(n_eff)
     mse_cur = 3.0 * current.sse / max(current.n, 1)
     mse = 3.0 * cv.sse / max(cv.n, 1)
@@ -809,6 +821,7 @@ def candidate_evidence(name: str, cv: CVFit, current: CVFit, floor: float, n_eff
     return {"effect": name, "testable": True, "score": float(score),
             "heldout_rms_mm": cv.rms_mm, "explained": float(explained),
             "rms_gain_vs_noise": float((current.rms_mm - cv.rms_mm) / floor),
+            "null_heldout_rms_mm": current.rms_mm,
             "fold_values": [float(v) for v in cv.values], "plausible": bool(plausible),
             "form": getattr(cv.cls, "form", None) if cv.cls is not None else None,
             "local": dict(cv.local or NO_LOCAL)}
