@@ -141,15 +141,24 @@ def fit_sigmoid(c: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     if c.size < 3:
         return float("nan"), float("nan")
 
+    last: list = [None, None]  # (alpha, beta), R there: the Jacobian comes at the point just fitted
+
+    def response(p):
+        if last[0] != (p[0], p[1]):
+            z = -p[0] * (c - p[1])
+            last[0], last[1] = (p[0], p[1]), 1.0 / (1.0 + np.exp(np.clip(z, -500, 500, out=z)))
+        return last[1]
+
     def resid(p):
-        z = np.clip(-p[0] * (c - p[1]), -500, 500)
-        return 1.0 / (1.0 + np.exp(z)) - y
+        return response(p) - y
 
     def jac(p):
-        z = np.clip(-p[0] * (c - p[1]), -500, 500)
-        r = 1.0 / (1.0 + np.exp(z))
+        r = response(p)
         dr = r * (1 - r)
-        return np.stack([dr * (c - p[1]), -dr * p[0]], axis=1)
+        J = np.empty((c.size, 2))
+        np.multiply(dr, c - p[1], out=J[:, 0])
+        np.multiply(-dr, p[0], out=J[:, 1])
+        return J
 
     start = fit_logistic(c, y[None])
     lo, hi = float(np.min(c)), float(np.max(c))

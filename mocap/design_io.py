@@ -1,5 +1,6 @@
-"""What ``mocap design --method model`` reads and writes: the identified face model of a session,
-a design's reference, the played take of a refinement, and the closed-loop check on the virtual
+"""What ``mocap design --method model`` reads and writes: the identified face model of a session
+(and a file holding it, so that repeated designs and refinements need not identify it again), a
+design's reference, the played take of a refinement, and the closed-loop check on the virtual
 face of a simulated session.
 """
 
@@ -52,6 +53,44 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
             model = profile_effect(data, model, CATALOGUE[n](), takes).model
             say(f"  {n}: {model.effect(n).describe()['value']:.4g} {CATALOGUE[n].unit}")
     return model, f"effects {', '.join(names)} fitted on {ms.source}"
+
+
+MODEL_FILE_FORMAT = "facemocap face model 1"  # the first record of a model file
+
+
+def save_model(model: FaceModel, path) -> Path:
+    """Write an identified model to ``path`` (atomically), for :func:`load_model`.
+
+    The file is a Python pickle of the :class:`FaceModel` after a format line: like an output
+    folder's state files it is trusted; never load one from an untrusted source.
+    """
+    import pickle
+
+    from mocap.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            pickle.dump(MODEL_FILE_FORMAT, f, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump(model, f, protocol=pickle.HIGHEST_PROTOCOL)
+    return Path(path)
+
+
+def load_model(path) -> FaceModel:
+    """The model :func:`save_model` wrote to ``path``; ValueError if the file is not one."""
+    import pickle
+
+    try:
+        with open(path, "rb") as f:
+            head = pickle.load(f)
+            model = pickle.load(f) if head == MODEL_FILE_FORMAT else None
+    except (EOFError, pickle.UnpicklingError, AttributeError, ImportError, TypeError,
+            ValueError, IndexError):
+        head = model = None
+    if head != MODEL_FILE_FORMAT or not isinstance(model, FaceModel):
+        raise ValueError(f"{path}: expected a face model file written by 'mocap design "
+                         f"--save-model' ({MODEL_FILE_FORMAT}), got something else; identify the "
+                         "model again (without --model)")
+    return model
 
 
 @dataclass(frozen=True)

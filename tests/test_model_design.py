@@ -28,7 +28,7 @@ from mocap.analysis.model_design import (
 from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
 from mocap.cli import main
-from mocap.design_io import identify_model, play_virtual, virtual_face_of
+from mocap.design_io import identify_model, load_model, play_virtual, virtual_face_of
 from mocap.truth_properties import true_properties
 
 DUS = (1, 7, 12)
@@ -272,9 +272,16 @@ def test_marker_choice_and_errors(lag_face, tmp_path):
 def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     src = lag_face.root / "session"
     out = tmp_path / "smile_planA.csv"
+    model_file = tmp_path / "lag_face.model"
     assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
-                 "--effects", "hysteresis,lag", "--check", "--out", str(out)]) == 0
+                 "--effects", "hysteresis,lag", "--check", "--save-model", str(model_file),
+                 "--out", str(out)]) == 0
     text = capsys.readouterr().out
+    # the command line identifies the model as the library does (the fixture's), and saves it
+    saved = load_model(model_file)
+    assert saved.parameters() == lag_face.model.parameters()
+    for name in ("alpha", "beta", "r", "D", "B", "density", "branch"):
+        np.testing.assert_array_equal(getattr(saved, name), getattr(lag_face.model, name))
     assert "closed loop model" in text and (tmp_path / "smile_planA.check.png").is_file()
     rows = pd.read_csv(out)
     assert_valid_command_file(rows, TIMING.step_s)
@@ -286,8 +293,9 @@ def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     make_session(played, effect=make_effect("lag"), battery=False, extra_commands=(out,),
                  **{**FACE, "n_trials": 1})
     out2 = tmp_path / "smile_planA_2.csv"
+    # the refinement designs with the saved model (identifying it again would give the same)
     assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
-                 "--effects", "hysteresis,lag", "--refine", "commands_01_smile_planA",
+                 "--model", str(model_file), "--refine", "commands_01_smile_planA",
                  "--measured", str(played / "session"), "--reference",
                  str(tmp_path / "smile_planA.reference.csv"), "--out", str(out2)]) == 0
     rows2 = pd.read_csv(out2)
@@ -304,6 +312,12 @@ def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
                  "--effects", "wobble", "--out", str(out2)]) == 1
     assert "unknown wobble" in capsys.readouterr().err
+    assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
+                 "--model", str(out), "--out", str(out2)]) == 1
+    assert "expected a face model file" in capsys.readouterr().err
+    assert main(["design", str(src), "--plan", "A", "--dus", "1,7,12", "--method", "model",
+                 "--model", str(model_file), "--effects", "lag", "--out", str(out2)]) == 1
+    assert "give one of them" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------------------------

@@ -28,6 +28,9 @@ and pass its name (of the session or 'mocap run' output in --measured, default S
 tracking error of the take updates the reference (the previous design's X.reference.csv, given
 by --reference) and the commands are designed again; a few repetitions converge.
 
+--save-model FILE writes the identified face model; --model FILE designs with it instead of
+identifying the model again (a refinement's repetitions need it once).
+
 --check: for a simulated session, play the paper's and the model's designs on the same virtual
 face (the session's own: its base-face family and its hidden effect in the form it was made
 with), evaluate them against the plan (RMS of the normalised displacement forward and backward,
@@ -73,6 +76,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the full motion is the response to 255 - headroom (command units)")
     g.add_argument("--sweeps", type=int, default=0,
                    help="non-causal passes over the whole plan after the causal one (slower)")
+    g.add_argument("--model", type=Path, default=None, metavar="FILE",
+                   help="use the face model a previous --save-model wrote instead of identifying "
+                        "it again (the same SOURCE's; with --refine repetitions)")
+    g.add_argument("--save-model", type=Path, default=None, metavar="FILE",
+                   help="write the identified face model to FILE, for --model")
     g.add_argument("--jobs", type=int, default=1, help="processes for the discrepancy workflow")
     g.add_argument("--refine", default=None, metavar="TAKE",
                    help="a played take of the previous commands: refine them (ILC)")
@@ -177,11 +185,16 @@ def run(args: argparse.Namespace) -> int:
     timing = _timing(args)
     try:
         sources = [args.source, *([args.measured] if args.measured else [])]
-        check_output_path(args.out, sessions=[s for s in map(session_dir_of, sources) if s],
-                          inputs=[f for f in (plan_file, args.reference) if f is not None])
+        sessions = [s for s in map(session_dir_of, sources) if s]
+        inputs = [f for f in (plan_file, args.reference, args.model) if f is not None]
+        check_output_path(args.out, sessions=sessions, inputs=inputs)
+        if args.save_model is not None:
+            check_output_path(args.save_model, sessions=sessions, inputs=[*inputs, args.out],
+                              option="--save-model")
         if args.method == "paper":
-            if args.refine or args.check:
-                print("error: --refine and --check need --method model", file=sys.stderr)
+            if args.refine or args.check or args.model or args.save_model:
+                print("error: --refine, --check, --model and --save-model need --method model",
+                      file=sys.stderr)
                 return 1
             if plan_file is not None:
                 print("note: the paper's rule on a plan with reversals jumps between its forward "
@@ -211,9 +224,11 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
     from mocap.atomic import write_csv
     from mocap.design_io import (
         identify_model,
+        load_model,
         played_take,
         read_reference,
         reference_path,
+        save_model,
         write_reference,
     )
 
@@ -222,7 +237,16 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
     effects = None if args.effects is None else [e.strip() for e in args.effects.split(",") if e.strip()]
     # the played take before the model: a wrong take name is an error at once, not after the fit
     take = played_take(args.measured or args.source, args.refine) if args.refine else None
-    model, how = identify_model(args.source, effects, jobs=args.jobs, progress=say)
+    if args.model is not None:
+        if effects is not None:
+            raise ValueError("--model and --effects: the model file's effects are fixed; give one "
+                             "of them")
+        model, how = load_model(args.model), f"read from {args.model}"
+    else:
+        model, how = identify_model(args.source, effects, jobs=args.jobs, progress=say)
+    if args.save_model is not None:
+        save_model(model, args.save_model)
+        say(f"face model written to {args.save_model}")
     say(f"face model: {how}; effects {', '.join(model.effect_names) or 'none'} "
         f"{ {k: round(v, 4) for k, v in model.parameters().items()} } ({time.perf_counter() - t0:.1f} s)")
     ref = plan_reference(plan, timing) if plan_file is None else file_reference(plan_file, timing)
