@@ -262,7 +262,8 @@ def test_offchord_path_leaves_off_its_chord_and_ends_at_the_peak():
 
 def small_labeled(root, family, **kw):
     cfg = SimConfig(seed=kw.pop("seed", 4), du_ids=kw.pop("du_ids", (4, 7)), n_markers=15,
-                    n_trials=kw.pop("n_trials", 2), motion_plans=(), battery=False, labeled=True,
+                    n_trials=kw.pop("n_trials", 2), motion_plans=(),
+                    battery=kw.pop("battery", False), labeled=True,
                     labeled_noise_mm=0.03, take_format="parquet", face_family=family, **kw)
     simulate(cfg, root)
     return root
@@ -558,6 +559,32 @@ def test_realised_drift_is_the_drift_plus_the_recorded_shifts(tmp_path):
     rise = [np.einsum("fmk,mk->", truth_positions(root, f"du07_t{k:02d}")[12:114, big], D[big])
             for k in (1, 2, 3, 4)]
     assert np.argmin(rise) == int(np.argmax(bias))
+
+
+def test_realised_session_drift_is_the_trend_of_every_takes_bias(tmp_path):
+    """The pooled trend (one intercept per DU) over the response trials and the motion takes,
+    which are played at trial 1, written out with a plain per-DU centring instead of a design
+    matrix; without trial variation it is the drift's k."""
+    from mocap.simulate import make_effect
+    from mocap.simulate.truth import realised_session_drift
+
+    root = small_labeled(tmp_path / "d", "preisach-bow", du_ids=(4, 7), n_trials=3,
+                         battery=True, effect=make_effect("drift", 2.5))
+    info = json.loads((root / "truth" / "truth.json").read_text())
+    pts = [(int(t["trial"] or 1), d, 2.5 * (int(t["trial"] or 1) - 1) + s)
+           for t in info["takes"] for d, s in t["bias_shift"].items()]
+    assert {p[0] for p in pts} == {1, 2, 3} and any(t["kind"] == "motion" for t in info["takes"])
+    num = den = 0.0
+    for d in {p[1] for p in pts}:
+        tr = np.array([p[0] for p in pts if p[1] == d], float)
+        b = np.array([p[2] for p in pts if p[1] == d])
+        num += np.sum((tr - tr.mean()) * (b - b.mean()))
+        den += np.sum((tr - tr.mean()) ** 2)
+    assert realised_session_drift(info) == pytest.approx(num / den, abs=1e-9)
+    assert realised_session_drift(info) != pytest.approx(2.5, abs=1e-3)  # the shifts move it
+    flat = {**info, "takes": [{**t, "bias_shift": {d: 0.0 for d in t["bias_shift"]}}
+                              for t in info["takes"]]}
+    assert realised_session_drift(flat) == pytest.approx(2.5, abs=1e-9)
 
 
 @pytest.mark.parametrize("family, lo, hi", [("pi", 0.999, 1.0), ("pi-bow", 0.8, 0.98),

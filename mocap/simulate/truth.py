@@ -31,3 +31,29 @@ def realised_bias_drift(info: dict, du: int) -> float:
     shift = np.array([t.get("bias_shift", {}).get(str(du), 0.0) for t in takes], float)
     bias = k * (trial - 1.0) + shift
     return float(np.polyfit(trial, bias, 1)[0])
+
+
+def realised_session_drift(info: dict) -> float:
+    """The drift trend the session's takes hold, command units per trial: the least-squares
+    slope over the trial number of every take's realised bias per DU (the drift's
+    ``k (trial - 1)`` plus the take's recorded ``bias_shift``), one intercept per DU, over every
+    take that moves a DU (a take without a trial is played as trial 1).
+
+    A drift is a process parameter k; a session of 3 trials holds k plus the slope of its random
+    trial shifts (a trial shift of SD s moves one DU's slope by about s / sqrt(2)), and the
+    takes outside the trapezoid's trials anchor trial 1. This is what an estimator of the trend
+    can at best recover from the takes; it is computed from the truth's own shifts.
+    """
+    k = effect_parameters(info).get("drift", {}).get("beta_per_trial", 0.0)
+    trial, du, bias = [], [], []
+    for t in info["takes"]:
+        for d, s in (t.get("bias_shift") or {}).items():
+            n = int(t.get("trial") or 1)
+            trial.append(n)
+            du.append(int(d))
+            bias.append(k * (n - 1.0) + float(s))
+    tr, du, v = np.asarray(trial, float), np.asarray(du), np.asarray(bias, float)
+    if np.unique(tr).size < 2:
+        raise ValueError(f"truth.json: the takes span {np.unique(tr).size} trial; a drift needs 2")
+    A = np.column_stack([tr] + [(du == d).astype(float) for d in np.unique(du)])
+    return float(np.linalg.lstsq(A, v, rcond=None)[0][0])
