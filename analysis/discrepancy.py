@@ -407,10 +407,13 @@ def effective_n(residuals: list[np.ndarray], used: np.ndarray) -> float:
 
 
 def n_parameters(model: FaceModel, effect_name: str) -> int:
-    """Parameters an effect adds: 1 for a global value, else per active curve."""
-    cls = CATALOGUE[effect_name]
-    if cls.pairwise:  # a 3D vector per DU pair driven together and marker
-        return 3 * max(len(model.pairs), 1) * int(model.active.any(axis=0).sum())
+    """Parameters an effect adds: 1 for a global value, else per active curve (the form the
+    model holds: a coupling law is one value, its pair vectors 3 per pair and marker)."""
+    held = model.effect(effect_name)
+    cls = type(held) if held is not None else CATALOGUE[effect_name]
+    if cls.pairwise:  # a 3D vector per DU pair driven together and marker (+ a law's value)
+        return (3 * max(len(model.pairs), 1) * int(model.active.any(axis=0).sum())
+                + int(not cls.per_curve))
     if cls.name == "takeshift":
         return max(sum(len(v) for v in model.take_shifts.values()), 1)
     if not cls.per_curve:
@@ -452,7 +455,8 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
             models.append(prof.model)
             nulls.append(prof.null)
             intervals.append(prof.interval)
-            values.append(prof.model.parameters()[form.parameter] if form.per_curve else prof.best)
+            values.append(prof.model.parameters()[form.parameter]
+                          if form.per_curve or form.pairwise else prof.best)
             if f == 0 and fold_sse(data, prof.model, 1) >= fold_sse(data, prof.null, 1):
                 models = None
                 break
@@ -749,7 +753,8 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             unc = {cls.parameter: _per_curve_spread(model, name)}
         else:
             eff = model.effect(name)
-            v = eff.describe()["value"]
+            # a law with pair vectors: kappa read from the whole fit, not the law's share
+            v = model.parameters()[cls.parameter] if cls.pairwise else eff.describe()["value"]
             se = profile_uncertainty(prof, n_eff)
             # two half-samples: |v0 - v1| / 2 estimates the full-sample standard error
             se = float(np.nanmax([se, abs(fits[name].values[0] - fits[name].values[1]) / 2]))

@@ -357,8 +357,20 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
                 model = _fit_all_curves(data, effects, takes, model, 0, model.density,
                                         model.take_shifts, model.branch)
     if any(type(e).pairwise for e in effects):
-        _fit_pairs(data, model, takes)
+        _fit_pairs(data, model, takes, kappa=not shifting)
+        if shifting:
+            # the multi-DU takes' shifts were identified without the pair terms and hold part of
+            # the coupling (a bias shift lowers a DU's response as a loss does): identify them
+            # again with the pairs, then the pairs again
+            multi = [k for k in takes if len(data.takes[k].dus) >= 2]
+            for r in range(PAIR_ROUNDS):
+                model.take_shifts = {**model.take_shifts, **{
+                    data.takes[k].name: conditional_shifts(data, model, k) for k in multi}}
+                _fit_pairs(data, model, takes, kappa=r == PAIR_ROUNDS - 1)
     return model
+
+
+PAIR_ROUNDS = 2  # shifts <-> pair vectors alternations after the pairs' first fit
 
 
 def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, iters: int,
@@ -767,9 +779,11 @@ def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2
     return {int(d): float(v) for d, v in zip(t.dus, s)}
 
 
-def _fit_pairs(data: ModelData, model: FaceModel, takes) -> None:
+def _fit_pairs(data: ModelData, model: FaceModel, takes, kappa: bool = True) -> None:
     """Fit the pair vectors C (P, M, 3) of ``model`` in place on the multi-DU takes among
-    ``takes``: per marker, linear least squares of the residual on y_n y_n' of each pair."""
+    ``takes``: per marker, linear least squares of the residual on y_n y_n' of each pair (after
+    any coupling law the model holds). ``kappa``: also read the coupling's kappa
+    (:func:`coupling_kappa`, into ``model.info``)."""
     multi = [k for k in takes if len(data.takes[k].dus) >= 2]
     pairs = sorted({(a, b) for k in multi for i, a in enumerate(data.takes[k].dus)
                     for b in data.takes[k].dus[i + 1:] if a in data.du_ids and b in data.du_ids})
@@ -800,7 +814,8 @@ def _fit_pairs(data: ModelData, model: FaceModel, takes) -> None:
     seen = np.einsum("mpp->mp", G) > 0
     C = np.linalg.solve(G + ridge + np.eye(P) * (~seen)[:, :, None], bvec)  # (M, P, 3)
     model.C = np.transpose(np.where(seen[..., None], C, 0.0), (1, 0, 2)) * model.active.any(axis=0)[None, :, None]
-    model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
+    if kappa:
+        model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
 
 
 def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
@@ -812,8 +827,8 @@ def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
     marker); the law that fits better gives kappa (both agree where o = 1). Grid then parabola."""
     from mocap.analysis.model_effects import Coupling
 
-    plain = replace(model, pairs=(), C=None, info={})
-    plain.__post_init__()
+    plain = replace(model, effects=tuple(e for e in model.effects if type(e).name != "coupling"),
+                    pairs=(), C=None, info={})
     pre = []
     for k in multi:
         t = data.takes[k]
@@ -908,6 +923,10 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     inner_rounds = 2 if (cls.stage == "actuator" and base.hysteresis) else None
     fixed = None if cls.affects_curves else fit_curves(data, others + (cls(0.0),), takes, warm=base,
                                                           iters=8)
+    # an interaction with the curves held: each multi-DU take's bias shift was identified
+    # without it and holds part of it (a coupling law read on stale shifts comes out short)
+    refresh = ([k for k in takes if len(data.takes[k].dus) >= 2]
+               if fixed is not None and fixed.shifts_takes and cls.stage == "interact" else [])
 
     def evaluate(v: float) -> float:
         v = float(np.clip(v, *cls.bounds))
@@ -917,7 +936,14 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
             if fixed is None:
                 m = fit_curves(data, effs, takes, warm=base, iters=5, rounds=inner_rounds)
             else:
-                m = fixed.with_effects(effs)
+                m = replace(fixed, effects=effs, info=dict(fixed.info))
+                if refresh:  # the shifts of the takes the value moves, identified again
+                    m.take_shifts = {**m.take_shifts, **{data.takes[k].name:
+                                                         conditional_shifts(data, m, k)
+                                                         for k in refresh}}
+                if cls.pairwise:  # the pair vectors on top of the value's law (kappa read
+                    #                 once, for the chosen value)
+                    _fit_pairs(data, m, takes, kappa=False)
             s, count[0] = sse(data, m, takes)
             cache[key] = (s, m)
         return cache[key][0]
@@ -942,6 +968,12 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     if null:
         evaluate(null_key)
     m_null = cache[null_key][1] if null else None
+    if cls.pairwise and fixed is not None:
+        m_best.info["coupling_kappa"] = coupling_kappa(
+            data, m_best, [k for k in takes if len(data.takes[k].dus) >= 2])
+    if null and cls.pairwise:  # a law with pair vectors: its null is no coupling at all, as
+        #                        the pair vectors' own null (forms are compared by their gain)
+        m_null = replace(fixed.with_effects(others), pairs=(), C=None, info={})
     if fixed is None:  # final polish of the curves at the chosen value
         same = best_key == null_key
         m_best = fit_curves(data, m_best.effects, takes, warm=m_best, iters=30)
