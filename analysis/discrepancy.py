@@ -17,8 +17,8 @@ name the missing effect, add it, show the gap shrink.
    same warm start, iterations and polish), so a fit's extra polish is not read as the effect.
 5. Name the best candidate when its score beats its null by ``margin`` (10), it
    explains at least ``min_explained`` (20 %) of the held-out excess over the noise floor and
-   removes at least ``min_rms_gain`` (3 %) of a noise floor from the held-out RMS (with
-   ``local``, off by default: or does as much where it acts, :func:`local_gain`), its
+   removes at least ``min_rms_gain`` (3 %) of a noise floor from the held-out RMS (or, with
+   ``local``, on by default, does as much where it acts, :func:`local_gain`), its
    parameter is physically plausible in both folds, and the
    session's takes can test it; else "no missing effect found". A candidate with several forms
    (:data:`mocap.analysis.model_effects.FORMS`: backlash as a play or a stick-slip dead band) is
@@ -86,18 +86,19 @@ class DiscrepancySettings:
     strong_fraction : a curve gets its own sigmoid when the marker's 95th-percentile
         displacement reaches this fraction of the DU's largest; the others take the DU's median
         shape and only their displacement vectors are fitted.
-    local, local_explained, local_gain, local_min_n : with ``local`` (off by default), another
+    local, local_explained, local_gain, local_min_n : with ``local`` (on by default), another
         way to pass the explained and RMS-gain tests: where the candidate acts (the held-out
         residual vectors it moves by more than half the noise floor, at least ``local_min_n`` of
         them), it removes at least ``local_explained`` of the excess over the noise floor and
         ``local_gain`` x the noise floor from the RMS. An effect that acts in a few places (a dead
-        band at reversals) is plain there and lost in the session's RMS. Off by default until
-        a wider sweep shows it names nothing on faces with nothing hidden: scored against the
+        band at reversals) is plain there and lost in the session's RMS. Scored against the
         base, a candidate's extra polish of the curves was local too (on a Preisach face with
         nothing hidden a lag of 0 s explained 69-77 % of the excess on the 326-717 residual
-        vectors it moved); scored against its own null (:func:`cv_candidate`) no face with
-        nothing hidden came near it (3 faces), and one hidden play on a 4-DU face would pass it.
-        The numbers are reported in every candidate's evidence either way.
+        vectors it moved), so it was off; scored against its own null (:func:`cv_candidate`) it
+        named nothing on 15 faces with nothing hidden (every family; benchmarks/
+        cross_family_sweep_session9.md) and named the stick-slip dead band on two 4-DU faces
+        where the session's RMS did not (Bouc-Wen bowed, branch play straight). The numbers are
+        reported in every candidate's evidence either way.
     max_steps : effects to add at most.
     jobs : processes over candidates (spawned; 1 runs in this process).
     """
@@ -112,7 +113,7 @@ class DiscrepancySettings:
     stride: int = 3
     max_samples_per_du: int = 1600
     strong_fraction: float = 0.15
-    local: bool = False
+    local: bool = True
     local_explained: float = 0.35
     local_gain: float = 0.25
     local_min_n: int = 100

@@ -165,15 +165,24 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
     if figures:
         L += ["", "## Figures", ""]
         L += [f"![{k}]({v})" for k, v in figures.items()]
-    L += ["", "Method: two-fold cross-validation over takes; score = n_eff ln(SSE_cand / SSE_cur) + "
-          "k ln(n_eff) on held-out takes (n_eff: the residuals' effective sample size); an effect is "
-          "named when its score is below -10, it explains at least 20 % of the held-out excess over "
-          "the noise floor and removes at least 3 % of a noise floor from the held-out RMS, its "
-          "parameter is plausible in both folds and the takes can test it (the gain where it acts, "
-          "on the held-out residuals it moves by more than half the noise floor, is reported "
-          "beside: a dead band acts at reversals only). A candidate with "
-          "several forms (backlash: a play, a stick-slip dead band) is fitted in each and keeps "
-          "the form that predicts the held-out takes better."]
+    st = meta.get("settings") or DiscrepancySettings().__dict__
+    where = (f"or where it acts (on at least {st['local_min_n']} held-out residual vectors it moves "
+             f"by more than half the noise floor) explains {100 * st['local_explained']:.0f} % of "
+             f"their excess and removes {st['local_gain']:g} of a noise floor"
+             if st["local"] else
+             "the gain where it acts, on the held-out residuals it moves by more than half the "
+             "noise floor, is reported beside but not used: a dead band acts at reversals only")
+    L += ["", "Method: two-fold cross-validation over takes; each candidate is fitted on one fold "
+          "beside its null (the effect at 0 fitted along the same path) and scored on the other: "
+          "score = n_eff ln(SSE_cand / SSE_null) + k ln(n_eff) on held-out takes (n_eff: the "
+          f"residuals' effective sample size); an effect is named when its score is below "
+          f"-{st['margin']:g}, it explains at least {100 * st['min_explained']:.0f} % of the "
+          f"held-out excess over the noise floor and removes at least "
+          f"{100 * st['min_rms_gain']:.0f} % of a noise floor from the held-out RMS ({where}), its "
+          "parameter is plausible in both folds and on all takes, and the takes can test it. A "
+          "candidate with several forms (backlash: a play, a stick-slip dead band; coupling: pair "
+          "vectors, a pull-weighted or uniform law with pair vectors) is fitted in each and keeps "
+          "the form with the larger held-out gain on its own null."]
     return "\n".join(L) + "\n"
 
 
