@@ -30,6 +30,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -108,14 +109,17 @@ def _drift_errors(row: dict, realised: float) -> dict:
     return row
 
 
-def run_case(family: str, effect: str, seed: int, root: Path, local: bool = False) -> dict:
+def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None) -> dict:
     from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.discrepancy_io import run
 
     form = "model" if seed % 2 else "alt"
     d = _simulate(family, effect, seed, root)
     t0 = time.perf_counter()
-    res = run(d / "session", d / "out", DiscrepancySettings(jobs=1, local=local), recording=False)
+    settings = DiscrepancySettings(jobs=1)
+    if local is not None:
+        settings = replace(settings, local=local)
+    res = run(d / "session", d / "out", settings, recording=False)
     info = json.loads((d / "truth" / "truth.json").read_text())
     truth = info["effect"]
     hidden = [] if effect == "none" else effect.split(",")
@@ -141,6 +145,7 @@ def run_case(family: str, effect: str, seed: int, root: Path, local: bool = Fals
             "evidence": [[_brief(e) for e in s.evidence] for s in res.steps]
             + [[_brief(e) for e in res.final_evidence]],
             "seconds": round(time.perf_counter() - t0, 1)}
+    row["local"] = settings.local
     return _drift_errors(row, realised_drift(info)) if "drift" in hidden else row
 
 
@@ -235,8 +240,9 @@ def main() -> int:
     ap.add_argument("--note", default="", help="a paragraph added to the table (how it was run)")
     ap.add_argument("--cases", default="", help="FAMILY:EFFECT:SEED,... run just these (effects "
                     "joined by '+', e.g. pi-bow:lag+drift:2) instead of the seeds' whole grid")
-    ap.add_argument("--local", action="store_true",
-                    help="name on the local criterion too (DiscrepancySettings(local=True))")
+    ap.add_argument("--local", action=argparse.BooleanOptionalAction, default=None,
+                    help="name on the local criterion too, or not (DiscrepancySettings.local; "
+                    "default: the library's default)")
     ap.add_argument("--out", default="cross_family_sweep",
                     help="file stem of the summary in benchmarks/ (.md and .json)")
     args = ap.parse_args()
@@ -262,7 +268,7 @@ def main() -> int:
             if k % n != i:
                 continue
             try:
-                row = {**run_case(fam, eff, seed, Path(tmp), args.local), "local": args.local}
+                row = run_case(fam, eff, seed, Path(tmp), args.local)
             except Exception as exc:  # a failed case is a result too
                 row = {"family": fam, "effect": eff, "seed": seed, "error": repr(exc)}
             print(json.dumps(row), flush=True)
