@@ -7,6 +7,7 @@ code with mocap.analysis (nor with tests/synthetic_faces.py's generator, which o
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -162,11 +163,34 @@ def plain_spread_and_linearity(trials, time_s, command, fps):
     return gamma, float(np.mean([lam[-1] / lam.sum() for lam in lin]))
 
 
-def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0):
+@pytest.fixture(scope="module")
+def noise_free():
+    """Noise-free takes and the recipe's values on them, made once per module: the cases that
+    differ only in the noise added share them (the take and its truth do not depend on the
+    noise; the generator's state after the take is kept with it, so each case draws the same
+    noise as if it had made the take itself)."""
+    return {}
+
+
+def _noise_free_take(cache, family, K, markers, seed):
+    """(take, dyssynchrony and linearity by the recipe on its noise-free trials, the generator
+    at its state after the take: a copy, to draw the noise from)."""
+    key = (family, K, markers, seed)
+    if key not in cache:
+        rng = np.random.default_rng(seed)
+        take = make_take(rng, family=family, n_markers=markers, n_trials=K)
+        take.trials.flags.writeable = False  # shared: no case may change it
+        gamma, linearity = plain_spread_and_linearity(take.trials, take.time_s, take.command, FPS)
+        cache[key] = (take, gamma, linearity, rng)
+    take, gamma, linearity, rng = cache[key]
+    return take, gamma, linearity, copy.deepcopy(rng)
+
+
+def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0, cache=None):
     """(relative dyssynchrony errors, linearity errors, the literal formula's relative error on
     the noisy data) over seeds. ``prior_takes`` > 0: the rest reference pooled with the face's
     rest seen in that many other takes (K trials x 6 rest frames each, the same noise), as the
-    session analysis pools the other DUs' takes."""
+    session analysis pools the other DUs' takes. ``cache``: the module's ``noise_free``."""
     from mocap.analysis.noise_corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
@@ -176,10 +200,9 @@ def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0):
 
     rel, lin, raw = [], [], []
     for seed in seeds:
-        rng = np.random.default_rng(seed)
-        take = make_take(rng, family=family, n_markers=markers, n_trials=K)
+        take, gamma, linearity, rng = _noise_free_take({} if cache is None else cache, family, K,
+                                                       markers, seed)
         tm = schedule_timing(take.time_s, take.command)
-        gamma, linearity = plain_spread_and_linearity(take.trials, take.time_s, take.command, FPS)
         noisy, cov = add_noise(rng, take.trials, sigma)
         noise = capture_noise_covariance(noisy, take.series, FPS)
         n_tr = np.full(noisy.shape[1:3], K)
@@ -201,7 +224,7 @@ def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0):
 @pytest.mark.parametrize("family", ["bow", "offchord"])
 @pytest.mark.parametrize("K", [3, 10])
 @pytest.mark.parametrize("sigma", [0.02, 0.05])
-def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
+def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma, noise_free):
     """20 faces per case (30 markers moving 0.15-3 mm, timing scatter, bowed or off-chord paths,
     trial shifts), anisotropic noise, the take's own rest frames only (6 per trial): the
     corrected indices against the paper's recipe on the noise-free trials (a plain second
@@ -211,7 +234,7 @@ def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
     median 6.5 %, worst faces 11.1 % and 17.4 %; before the soft root's threshold was the noise
     model's at zero spread and the hold had its long box: -8.8 %, 9.8 %, 13.2 % and 23.5 %).
     Linearity within 0.02 every time."""
-    rel, lin, raw = corrected_vs_truth(family, K, sigma, range(20))
+    rel, lin, raw = corrected_vs_truth(family, K, sigma, range(20), cache=noise_free)
     assert np.all(raw > 0.5), raw  # the noise the correction has to remove
     assert abs(np.mean(rel)) < 0.07, rel
     assert np.median(np.abs(rel)) < 0.08, rel
@@ -221,7 +244,7 @@ def test_corrected_dyssynchrony_and_linearity_monte_carlo(family, K, sigma):
 
 @pytest.mark.parametrize("family", ["bow", "offchord"])
 @pytest.mark.parametrize(("K", "sigma"), [(3, 0.02), (3, 0.035), (10, 0.02), (10, 0.05), (3, 0.05)])
-def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, sigma):
+def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, sigma, noise_free):
     """The session analysis pools each take's rest reference with the face's rest in the other
     DUs' takes (15 here, each K trials x 6 frames): 20 faces of 60 markers per case. Every single
     face within 10 % of the recipe on its noise-free trials (measured: worst 6.3 %, off-chord
@@ -230,7 +253,8 @@ def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, s
     resolutions where the spread allows: 85 %), none beyond 12 % (measured 10.6 %), the mean
     within 4 % (measured -2.4 % on off-chord faces, whose curves are staircases stepping at their
     own dead times; -3.9 % when the 0.1 s box smoothed part of their spread away everywhere)."""
-    rel = corrected_vs_truth(family, K, sigma, range(20), markers=60, prior_takes=15)[0]
+    rel = corrected_vs_truth(family, K, sigma, range(20), markers=60, prior_takes=15,
+                             cache=noise_free)[0]
     if (K, sigma) == (3, 0.05):
         assert np.mean(np.abs(rel) < 0.10) >= 0.9 and np.max(np.abs(rel)) < 0.12, rel
         assert abs(np.mean(rel)) < 0.04, rel
@@ -357,7 +381,7 @@ def test_pooled_rest_reference_only_where_the_rests_agree():
 
 @pytest.mark.parametrize("family", ["preisach-bow", "boucwen-offchord"])
 @pytest.mark.parametrize(("K", "sigma"), [(3, 0.02), (10, 0.02), (10, 0.05)])
-def test_corrected_indices_on_the_simulator_families(family, K, sigma):
+def test_corrected_indices_on_the_simulator_families(family, K, sigma, noise_free):
     """The simulator's own face families (Preisach hysteresis with bowed paths, Bouc-Wen with
     paths off the chord; per-marker scatter and trial shifts), DU 4 of 16 small faces each, every
     marker moving at least 0.05 mm kept (the paper's rule, so many barely above the noise), white
@@ -379,14 +403,19 @@ def test_corrected_indices_on_the_simulator_families(family, K, sigma):
     rel, lin, raw = [], [], []
     for seed in range(16):
         cfg = preset("small", seed=seed, battery=False, n_trials=K, face_family=family)
-        _, _, face = virtual_rig_and_face(cfg)
         n = int(round((ts.max() + RESPONSE_TAIL_S) * cfg.fps))
-        T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
-                                     take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"), skin_jitter=False)
-                      for k in range(1, K + 1)])
-        moved = np.linalg.norm(T.mean(axis=0) - T.mean(axis=0)[0], axis=-1).max(axis=0)
-        T = T[:, :, moved >= 0.05]
-        gamma, linearity = plain_spread_and_linearity(T, ts, c, cfg.fps)
+        key = ("simulator", family, K, seed)  # the noise-free trials are the same at every sigma
+        if key not in noise_free:
+            _, _, face = virtual_rig_and_face(cfg)
+            T = np.stack([true_positions(face, cfg.effect, sched, n, cfg.fps, k,
+                                         take_rng(cfg.seed, f"du{du:02d}_t{k:02d}"),
+                                         skin_jitter=False)
+                          for k in range(1, K + 1)])
+            moved = np.linalg.norm(T.mean(axis=0) - T.mean(axis=0)[0], axis=-1).max(axis=0)
+            T = T[:, :, moved >= 0.05]
+            T.flags.writeable = False
+            noise_free[key] = (T, *plain_spread_and_linearity(T, ts, c, cfg.fps))
+        T, gamma, linearity = noise_free[key]
         noisy = add_noise(np.random.default_rng(seed), T, sigma)[0]
         tm = schedule_timing(ts, c)
         noise = capture_noise_covariance(noisy, sample_commands(sched, [du], np.arange(n) / cfg.fps)[:, 0],
