@@ -733,11 +733,14 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         for item in sorted(ok, key=lambda e: e["score"]):
             cls = fits[item["effect"]].cls or CATALOGUE[item["effect"]]
             prof = profile_effect(data, full, cls(), all_takes)
-            if cls.per_curve or cls(prof.best).plausible():
+            # a law with pair vectors: its kappa is read from the whole fit (the law's own value
+            # can be ~0 where the pair vectors carry the coupling)
+            value = prof.model.parameters()[cls.parameter] if cls.pairwise else prof.best
+            if cls.per_curve or cls(value).plausible():
                 best = item
                 break
             item["plausible"] = False
-            shown = cls(prof.best).describe()
+            shown = cls(value).describe()
             item["reason"] = (f"on all takes its {cls.parameter} is {shown['value']:.4g} "
                               f"{shown['unit']}, "
                               "not a plausible value: the folds' gain does not hold on the "
@@ -756,9 +759,13 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             eff = model.effect(name)
             # a law with pair vectors: kappa read from the whole fit, not the law's share
             v = model.parameters()[cls.parameter] if cls.pairwise else eff.describe()["value"]
-            se = profile_uncertainty(prof, n_eff)
+            fv = fits[name].values
+            # the profile's curvature is the law's, not kappa's: a law with pair vectors takes
+            # the spread of its kappa readings (the folds', and all takes' from their mean)
+            se = (abs(v - 0.5 * (fv[0] + fv[1])) if cls.pairwise
+                  else profile_uncertainty(prof, n_eff))
             # two half-samples: |v0 - v1| / 2 estimates the full-sample standard error
-            se = float(np.nanmax([se, abs(fits[name].values[0] - fits[name].values[1]) / 2]))
+            se = float(np.nanmax([se, abs(fv[0] - fv[1]) / 2]))
             if name == "saturation" and np.isfinite(se) and prof.best > 0:
                 se = se / prof.best ** 2  # 1/L -> L
             params = {cls.parameter: float(v)}
