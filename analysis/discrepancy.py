@@ -436,6 +436,16 @@ def cv_base(data: ModelData, effects) -> CVFit:
     return CVFit(models, s, n)
 
 
+def reported_value(prof, cls) -> float:
+    """The parameter a profile of ``cls`` identified, as the effect reports it: per-curve
+    effects and a coupling law with pair vectors read it from the fitted model (kappa from the
+    whole fit: the law's own value can be ~0 where the pair vectors carry the coupling), the
+    other global effects are the profiled value."""
+    if cls.per_curve or cls.pairwise:
+        return prof.model.parameters()[cls.parameter]
+    return prof.best
+
+
 def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
                  floor: float | None = None) -> CVFit | None:
     """The candidate fitted on each fold and scored on the other, beside its null (the effect
@@ -456,8 +466,7 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
             models.append(prof.model)
             nulls.append(prof.null)
             intervals.append(prof.interval)
-            values.append(prof.model.parameters()[form.parameter]
-                          if form.per_curve or form.pairwise else prof.best)
+            values.append(reported_value(prof, form))
             if f == 0 and fold_sse(data, prof.model, 1) >= fold_sse(data, prof.null, 1):
                 models = None
                 break
@@ -733,9 +742,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         for item in sorted(ok, key=lambda e: e["score"]):
             cls = fits[item["effect"]].cls or CATALOGUE[item["effect"]]
             prof = profile_effect(data, full, cls(), all_takes)
-            # a law with pair vectors: its kappa is read from the whole fit (the law's own value
-            # can be ~0 where the pair vectors carry the coupling)
-            value = prof.model.parameters()[cls.parameter] if cls.pairwise else prof.best
+            value = reported_value(prof, cls)
             if cls.per_curve or cls(value).plausible():
                 best = item
                 break
@@ -757,8 +764,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             unc = {cls.parameter: _per_curve_spread(model, name)}
         else:
             eff = model.effect(name)
-            # a law with pair vectors: kappa read from the whole fit, not the law's share
-            v = model.parameters()[cls.parameter] if cls.pairwise else eff.describe()["value"]
+            v = reported_value(prof, cls) if cls.pairwise else eff.describe()["value"]
             fv = fits[name].values
             # the profile's curvature is the law's, not kappa's: a law with pair vectors takes
             # the spread of its kappa readings (the folds', and all takes' from their mean)

@@ -362,7 +362,7 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
             # the multi-DU takes' shifts were identified without the pair terms and hold part of
             # the coupling (a bias shift lowers a DU's response as a loss does): identify them
             # again with the pairs, then the pairs again
-            multi = [k for k in takes if len(data.takes[k].dus) >= 2]
+            multi = multi_du_takes(data, takes)
             for r in range(PAIR_ROUNDS):
                 model.take_shifts = {**model.take_shifts, **{
                     data.takes[k].name: conditional_shifts(data, model, k) for k in multi}}
@@ -371,6 +371,11 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
 
 
 PAIR_ROUNDS = 2  # shifts <-> pair vectors alternations after the pairs' first fit
+
+
+def multi_du_takes(data: ModelData, takes) -> list[int]:
+    """The takes among ``takes`` (indices) that drive several DUs at once."""
+    return [k for k in takes if len(data.takes[k].dus) >= 2]
 
 
 def _fit_all_curves(data: ModelData, effects, takes, warm: FaceModel | None, iters: int,
@@ -784,7 +789,7 @@ def _fit_pairs(data: ModelData, model: FaceModel, takes, kappa: bool = True) -> 
     ``takes``: per marker, linear least squares of the residual on y_n y_n' of each pair (after
     any coupling law the model holds). ``kappa``: also read the coupling's kappa
     (:func:`coupling_kappa`, into ``model.info``)."""
-    multi = [k for k in takes if len(data.takes[k].dus) >= 2]
+    multi = multi_du_takes(data, takes)
     pairs = sorted({(a, b) for k in multi for i, a in enumerate(data.takes[k].dus)
                     for b in data.takes[k].dus[i + 1:] if a in data.du_ids and b in data.du_ids})
     M = len(data.marker_names)
@@ -925,7 +930,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
                                                           iters=8)
     # an interaction with the curves held: each multi-DU take's bias shift was identified
     # without it and holds part of it (a coupling law read on stale shifts comes out short)
-    refresh = ([k for k in takes if len(data.takes[k].dus) >= 2]
+    refresh = (multi_du_takes(data, takes)
                if fixed is not None and fixed.shifts_takes and cls.stage == "interact" else [])
 
     def evaluate(v: float) -> float:
@@ -970,7 +975,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     m_null = cache[null_key][1] if null else None
     if cls.pairwise and fixed is not None:
         m_best.info["coupling_kappa"] = coupling_kappa(
-            data, m_best, [k for k in takes if len(data.takes[k].dus) >= 2])
+            data, m_best, multi_du_takes(data, takes))
     if null and cls.pairwise:  # a law with pair vectors: its null is no coupling at all, as
         #                        the pair vectors' own null (forms are compared by their gain)
         m_null = replace(fixed.with_effects(others), pairs=(), C=None, info={})
