@@ -61,6 +61,8 @@ class Effect:
     pairwise: ClassVar[bool] = False  # adds a 3D vector per DU pair and marker (y_n y_n' terms)
     fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
     command_grid: ClassVar[bool] = False  # a dead band: resolved to half a command step at best
+    continuation: ClassVar[bool] = False  # profile warm-started from the nearest value tried
+    #                                        (a rough profile: model_fit.profile_effect)
     min_plausible: ClassVar[float] = 0.0  # |value| below this is no effect at all
     affects_curves: ClassVar[bool] = True  # False: single-DU takes do not depend on the value,
     #                                         so the curves are fitted once for its profile
@@ -179,6 +181,7 @@ class DeadTime(Effect):
     grid: ClassVar[tuple[float, ...]] = tuple(np.round(np.arange(0.0, 0.2001, 1 / 40), 6))
     bounds: ClassVar[tuple[float, float]] = (0.0, 0.4)
     fine_grid: ClassVar[bool] = True
+    continuation: ClassVar[bool] = True
     min_plausible: ClassVar[float] = 0.003
 
     def actuator(self, a, t, sampler):
