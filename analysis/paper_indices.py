@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import leastsq
 
-from mocap.analysis.logistic_fit import fit_logistic
+from mocap.analysis.logistic_fit import fit_logistic, grouped_samples
 # the paper's time axis is read from the command rows: core (reconstruction needs it too)
 from mocap.schedules import TIME_TOL_S, ScheduleTiming, schedule_timing, timing_from_series  # noqa: F401
 
@@ -140,6 +140,13 @@ def fit_sigmoid(c: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     y = np.asarray(y, float)
     if c.size < 3:
         return float("nan"), float("nan")
+    start = fit_logistic(c, y[None])
+    lo, hi = float(np.min(c)), float(np.max(c))
+    # pooled pairs share their abscissae (a window's frames tiled once per marker): the least
+    # squares on each abscissa's mean weighted by its count has the same gradient, Gauss-Newton
+    # matrix and minimum (the cost less a constant), on M times fewer residuals
+    c, Y, S, _ = grouped_samples(c, y[None], np.ones((1, c.size)))
+    y, sw = Y[0], np.sqrt(S[0])
 
     last: list = [None, None]  # (alpha, beta), R there: the Jacobian comes at the point just fitted
 
@@ -150,18 +157,16 @@ def fit_sigmoid(c: np.ndarray, y: np.ndarray) -> tuple[float, float]:
         return last[1]
 
     def resid(p):
-        return response(p) - y
+        return sw * (response(p) - y)
 
     def jac(p):
         r = response(p)
-        dr = r * (1 - r)
+        dr = sw * r * (1 - r)
         J = np.empty((c.size, 2))
         np.multiply(dr, c - p[1], out=J[:, 0])
         np.multiply(-dr, p[0], out=J[:, 1])
         return J
 
-    start = fit_logistic(c, y[None])
-    lo, hi = float(np.min(c)), float(np.max(c))
     span = max(hi - lo, 1e-9)
     starts = [(float(start.a[0]), float(start.b[0]))]
     starts += [(k / span, lo + f * span) for k in (2.0, 8.0, 25.0) for f in (0.25, 0.5, 0.75)]
