@@ -95,6 +95,12 @@ def take_tables(rows: pd.DataFrame, dus, n_frames: int, fps: float, effects,
     return [play_table(a[:, j], keep_every=stride) for j in range(a.shape[1])]
 
 
+def _sum_over_dus(y: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """sum_n y[s, n, m] V[n, m, k] -> (S, M, 3): y (S, N, M), V (N, M, 3). One batched matrix
+    product per marker (the einsum's loop took 2-4 x longer on the design's small blocks)."""
+    return np.matmul(y.transpose(2, 0, 1), V.transpose(1, 0, 2)).transpose(1, 0, 2)
+
+
 @dataclass
 class FaceModel:
     """An identified face model (plain arrays; see the module docstring for the equations).
@@ -209,13 +215,13 @@ class FaceModel:
         y_eff = y
         for e in self.effects:
             y_eff = e.interact(y_eff, D)
-        d = np.einsum("snm,nmk->smk", y_eff, D)
+        d = _sum_over_dus(y_eff, D)
         if self.pairs:
             d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C)
         k = 0
         for e in self.effects:
             for basis in e.bases(y_eff):  # the path is followed to where the response got
-                d = d + np.einsum("snm,nmk->smk", basis, self.B[rows, :, k])
+                d = d + _sum_over_dus(basis, self.B[rows, :, k])
                 k += 1
         for e in self.effects:
             d = e.output(d)
