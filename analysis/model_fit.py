@@ -364,8 +364,7 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
             # again with the pairs, then the pairs again
             multi = multi_du_takes(data, takes)
             for r in range(PAIR_ROUNDS):
-                model.take_shifts = {**model.take_shifts, **{
-                    data.takes[k].name: conditional_shifts(data, model, k) for k in multi}}
+                _refresh_shifts(data, model, multi)
                 _fit_pairs(data, model, takes, kappa=r == PAIR_ROUNDS - 1)
     return model
 
@@ -738,6 +737,13 @@ def _update_shifts(data: ModelData, model: FaceModel, takes) -> dict:
     return out
 
 
+def _refresh_shifts(data: ModelData, model: FaceModel, takes) -> None:
+    """The bias shifts of ``takes`` (indices) identified again on ``model`` as it stands
+    (:func:`conditional_shifts`, not centred), the other takes' kept; in place."""
+    model.take_shifts = {**model.take_shifts,
+                         **{data.takes[k].name: conditional_shifts(data, model, k) for k in takes}}
+
+
 SHIFT_TOL = 1e-3  # command units: a take's shift converged
 
 
@@ -955,9 +961,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
             else:
                 m = replace(fixed, effects=effs, info=dict(fixed.info))
                 if refresh:  # the shifts of the takes the value moves, identified again
-                    m.take_shifts = {**m.take_shifts, **{data.takes[k].name:
-                                                         conditional_shifts(data, m, k)
-                                                         for k in refresh}}
+                    _refresh_shifts(data, m, refresh)
                 if cls.pairwise:  # the pair vectors on top of the value's law (kappa read
                     #                 once, for the chosen value)
                     _fit_pairs(data, m, takes, kappa=False)
