@@ -3,7 +3,8 @@
 Every base family (``mocap.simulate.families.FAMILIES``: 4 hysteresis operators x 3 path shapes,
 with per-take bias shifts and per-marker scatter) x {none, each effect, lag + drift, coupling +
 backlash} x seeds; the hidden effects in the simulator's own form on odd seeds and in its "alt"
-form (``effects_alt``: equations the model does not share) on even ones. Each case: a small
+form (``effects_alt``: equations the model does not share) on even ones (a case may name its
+form: FAMILY:EFFECT:SEED:FORM, e.g. alt2, the third coupling law). Each case: a small
 labeled session (4 DUs, 20 markers, 3 trials, the identification battery, smiles A and C,
 0.03 mm capture noise), run through the workflow, which sees only the session; scored against
 the simulator's truth (truth/truth.json).
@@ -19,6 +20,7 @@ Shards run side by side (one process each) and append JSON lines; ``--summarise`
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 1/2 > /tmp/sweep1.jsonl
     python benchmarks/cross_family_sweep.py --summarise /tmp/sweep0.jsonl /tmp/sweep1.jsonl
     python benchmarks/cross_family_sweep.py --cases pi-bow:lag:2,boucwen-bow:lag+drift:2 > x.jsonl
+    python benchmarks/cross_family_sweep.py --cases pi-bow:coupling:6:alt2 > y.jsonl
     python benchmarks/cross_family_sweep.py --summarise x.jsonl --out cross_family_sweep_alt
 """
 
@@ -75,11 +77,17 @@ def realised_drift(info: dict) -> float:
     return realised_session_drift(info)
 
 
-def _simulate(family: str, effect: str, seed: int, root: Path, plans=("A", "C")) -> Path:
+def seed_form(seed: int) -> str:
+    """The hidden effects' form of a case without its own: model on odd seeds, alt on even."""
+    return "model" if seed % 2 else "alt"
+
+
+def _simulate(family: str, effect: str, seed: int, root: Path, plans=("A", "C"),
+              form: str | None = None) -> Path:
     from mocap.simulate import preset, simulate
     from mocap.simulate.effects import make_effect
 
-    form = "model" if seed % 2 else "alt"
+    form = form or seed_form(seed)
     cfg = preset("small", seed=seed, labeled=True, n_markers=20, labeled_noise_mm=0.03,
                  motion_plans=plans, face_family=family, effect=make_effect(effect, form=form))
     d = root / f"{family}_{effect.replace(',', '_')}_{seed}"
@@ -93,7 +101,7 @@ def rescore_drift(row: dict) -> dict:
     if "drift" not in row.get("hidden", []) or "realised" in row or "error" in row:
         return row
     with tempfile.TemporaryDirectory() as tmp:
-        d = _simulate(row["family"], row["effect"], row["seed"], Path(tmp))
+        d = _simulate(row["family"], row["effect"], row["seed"], Path(tmp), form=row.get("form"))
         info = json.loads((d / "truth" / "truth.json").read_text())
     return _drift_errors(row, realised_drift(info))
 
@@ -109,12 +117,13 @@ def _drift_errors(row: dict, realised: float) -> dict:
     return row
 
 
-def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None) -> dict:
+def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None,
+             form: str | None = None) -> dict:
     from mocap.analysis.discrepancy import DiscrepancySettings
     from mocap.discrepancy_io import run
 
-    form = "model" if seed % 2 else "alt"
-    d = _simulate(family, effect, seed, root)
+    form = form or seed_form(seed)
+    d = _simulate(family, effect, seed, root, form=form)
     t0 = time.perf_counter()
     settings = DiscrepancySettings(jobs=1)
     if local is not None:
@@ -238,8 +247,9 @@ def main() -> int:
     ap.add_argument("--shard", default="0/1", help="i/n: run every n-th case from the i-th")
     ap.add_argument("--summarise", nargs="*", type=Path, help="JSON-lines files of earlier runs")
     ap.add_argument("--note", default="", help="a paragraph added to the table (how it was run)")
-    ap.add_argument("--cases", default="", help="FAMILY:EFFECT:SEED,... run just these (effects "
-                    "joined by '+', e.g. pi-bow:lag+drift:2) instead of the seeds' whole grid")
+    ap.add_argument("--cases", default="", help="FAMILY:EFFECT:SEED[:FORM],... run just these "
+                    "(effects joined by '+', e.g. pi-bow:lag+drift:2; FORM model, alt or alt2, "
+                    "default by the seed's parity) instead of the seeds' whole grid")
     ap.add_argument("--local", action=argparse.BooleanOptionalAction, default=None,
                     help="name on the local criterion too, or not (DiscrepancySettings.local; "
                     "default: the library's default)")
@@ -247,8 +257,8 @@ def main() -> int:
                     help="file stem of the summary in benchmarks/ (.md and .json)")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
-    chosen = [(f, e.replace("+", ","), int(sd)) for f, e, sd in
-              (c.split(":") for c in args.cases.split(",") if c)]
+    chosen = [(p[0], p[1].replace("+", ","), int(p[2]), p[3] if len(p) > 3 else None)
+              for p in (c.split(":") for c in args.cases.split(",") if c)]
     planned = len(chosen) if chosen else len(cases(seeds))
     if args.summarise is not None:
         rows = [rescore_drift(json.loads(line)) for p in args.summarise
@@ -264,13 +274,14 @@ def main() -> int:
         return 0
     i, n = (int(v) for v in args.shard.split("/"))
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (fam, eff, seed) in enumerate(chosen or cases(seeds)):
+        for k, (fam, eff, seed, form) in enumerate(chosen or [(*c, None) for c in cases(seeds)]):
             if k % n != i:
                 continue
             try:
-                row = run_case(fam, eff, seed, Path(tmp), args.local)
+                row = run_case(fam, eff, seed, Path(tmp), args.local, form)
             except Exception as exc:  # a failed case is a result too
-                row = {"family": fam, "effect": eff, "seed": seed, "error": repr(exc)}
+                row = {"family": fam, "effect": eff, "seed": seed, "form": form or seed_form(seed),
+                       "error": repr(exc)}
             print(json.dumps(row), flush=True)
             shutil.rmtree(Path(tmp) / f"{fam}_{eff.replace(',', '_')}_{seed}", ignore_errors=True)
     return 0

@@ -431,6 +431,28 @@ def test_alt_coupling_is_a_product_of_the_drives_at_every_marker(face):
     assert np.abs(both[hold] - (1 - kappa) * (d_a + d_b)[hold]).max() < 0.02 * np.abs(d_a + d_b).max()
 
 
+def test_alt2_coupling_stiffens_with_the_square_of_the_other_drive(face):
+    """The third coupling law (alt2): the other DU's drive enters squared, so half way up it
+    costs a quarter of what it costs at full command; at full command kappa, as the alt form."""
+    from mocap.schedules import trapezoid as trap
+
+    kappa = 0.35
+    e = HiddenEffect("coupling", kappa, "alt2")
+    assert e.describe()["alt_equation"].startswith("strain-stiffening")
+    rows = pd.concat([trap(1), trap(4)], ignore_index=True)
+    both = _d(face, e, rows)
+    d_a, d_b = _d(face, e, trap(1)), _d(face, e, trap(4))
+    y_a = _y(face, HiddenEffect(), trap(1))[:, 0, :, None]
+    y_b = _y(face, HiddenEffect(), trap(4))[:, 0, :, None]
+    np.testing.assert_allclose(both, d_a * (1 - kappa * y_b**2) + d_b * (1 - kappa * y_a**2),
+                               atol=1e-9)
+    hold = slice(300, 400)
+    assert np.abs(both[hold] - (1 - kappa) * (d_a + d_b)[hold]).max() < 0.02 * np.abs(d_a + d_b).max()
+    # not the alt (bilinear) law: they part where the drives are between 0 and 1
+    bilinear = _d(face, HiddenEffect("coupling", kappa, "alt"), rows)
+    assert np.abs(both - bilinear).max() > 0.05 * kappa * np.abs(d_a + d_b).max()
+
+
 def test_alt_saturation_compresses_each_du_before_the_sum(face):
     from mocap.schedules import trapezoid as trap
 

@@ -44,9 +44,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the base face's family: hysteresis-path among "
                         f"{', '.join(FAMILY_NAMES[1:-1])}; pi (default: the face of earlier "
                         "versions); random (drawn from the seed, named in truth/ only)")
-    p.add_argument("--effect-form", choices=["model", "alt"], default="model",
-                   help="the hidden effects' equations: model (default) or alt, a second form "
-                        "with the same parameters that the analysis model does not share")
+    p.add_argument("--effect-form", choices=["model", "alt", "alt2"], default="model",
+                   help="the hidden effects' equations: model (default); alt, a second form "
+                        "with the same parameters that the analysis model does not share; alt2, "
+                        "a third form where one is written (coupling: strain-stiffening skin), "
+                        "else alt")
     p.add_argument("--labeled", action="store_true", help="write labeled 3D takes (no cameras)")
     p.add_argument("--labeled-noise-mm", type=float, default=None,
                    help="measurement noise sd per axis of labeled takes, mm (default 0.02)")

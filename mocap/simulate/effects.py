@@ -27,7 +27,9 @@ The true response of a take is computed in three stages (``mocap.simulate.motion
 With a face family whose paths are not straight, ``sum_n y_n D_nm`` reads ``sum_n p_nm(y_n)``,
 the family's path (``families``). ``form="alt"`` (``--effect-form alt``) replaces each equation
 by a second form the analysis model does not share, with the same parameter and unit
-(``effects_alt``).
+(``effects_alt``). ``form="alt2"`` is a third form where the model has since grown the alt
+form's equation (coupling: the analysis now fits the uniform law of the alt form, so an honest
+test of it needs a law it does not have); effects without a third form use their alt form.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ MEANINGS = {
 }
 
 
-FORMS = ("model", "alt")
+FORMS = ("model", "alt", "alt2")
 
 ALT_TRUTH = {
     "none": "",
@@ -82,13 +84,20 @@ ALT_TRUTH = {
                  "deviation over |D|",
 }
 
+ALT2_TRUTH = {
+    "coupling": "strain-stiffening shared skin: y_n (1 - kappa sum_{n' != n} y_n'^2) at every "
+                "marker (the other DU's pull costs little at first, most near full command); kappa "
+                "is the fraction a DU's response loses while another is at full command",
+}
+
 
 @dataclass(frozen=True)
 class HiddenEffect:
     """A hidden effect and its strength (see the module docstring for equations).
 
-    form : "model" (the equations above) or "alt" (``effects_alt``: the same parameter, a form
-    the analysis model does not share).
+    form : "model" (the equations above), "alt" (``effects_alt``: the same parameter, a form
+    the analysis model does not share) or "alt2" (a third form where one is written, see
+    :data:`ALT2_TRUTH`; the alt form otherwise).
     """
 
     name: str = "none"
@@ -121,8 +130,20 @@ class HiddenEffect:
             "unit": EFFECTS[self.name][2],
             "meaning": MEANINGS[self.name],
             "form": self.form,
-            **({"alt_equation": ALT_TRUTH[self.name]} if self.form == "alt" else {}),
+            **({"alt_equation": self.equation} if self.form != "model" else {}),
         }
+
+    @property
+    def alt(self) -> bool:
+        """Whether the effect acts in a form other than the model's (alt or alt2)."""
+        return self.form != "model"
+
+    @property
+    def equation(self) -> str:
+        """The written equation of an alt or alt2 form (empty for the model form)."""
+        if self.form == "alt2" and self.name in ALT2_TRUTH:
+            return ALT2_TRUTH[self.name]
+        return ALT_TRUTH[self.name] if self.alt else ""
 
     # -- stage 1: command side -------------------------------------------------------------
     def command(self, c: np.ndarray, t: np.ndarray, sampler) -> np.ndarray:
@@ -131,7 +152,7 @@ class HiddenEffect:
         ``sampler(times) -> (n_samples, n_dus)`` evaluates the command schedule at any times
         (used by dead time to shift exactly).
         """
-        if self.form == "alt":
+        if self.alt:
             if self.name == "deadtime" and self.strength > 0:
                 return alt.distributed_delay(t, sampler, self.strength)
             if self.name == "lag" and self.strength > 0:
@@ -158,7 +179,7 @@ class HiddenEffect:
         for the alt drift (which then needs ``n_markers``)."""
         if self.name == "drift":
             k = self.strength * (max(int(trial), 1) - 1)
-            if self.form == "alt":
+            if self.alt:
                 if n_markers is None:
                     raise ValueError("hidden effect drift (alt form): the bias shift needs n_markers")
                 return k * alt.marker_drift_weights(n_markers)
@@ -186,9 +207,12 @@ def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndar
     Shapes as :meth:`HiddenEffect.displacement`. Effects absent from ``effects`` are identity.
     """
     by_name = {e.name: e.strength for e in effects}
-    alt_forms = {e.name for e in effects if e.form == "alt"}
+    alt_forms = {e.name for e in effects if e.alt}
+    forms = {e.name: e.form for e in effects}
     if "coupling" in by_name and y.shape[1] > 1:
-        if "coupling" in alt_forms:
+        if forms["coupling"] == "alt2":
+            y_eff = alt.stiffening_coupling(y, by_name["coupling"])
+        elif "coupling" in alt_forms:
             y_eff = alt.coupled_drives(y, by_name["coupling"])
         else:
             mag = np.linalg.norm(D, axis=-1)  # (n_dus, M)
@@ -277,8 +301,8 @@ def make_effect(names, strengths=None, form: str = "model"):
     """One :class:`HiddenEffect` or a :class:`CombinedEffect` from names and optional strengths.
 
     ``names`` : str ("lag", "lag,drift") or sequence; ``strengths`` : None, a number, a string
-    "0.08,4" or a sequence, one per name (None entries take the default); ``form`` : "model" or
-    "alt" for every effect (see ``effects_alt``).
+    "0.08,4" or a sequence, one per name (None entries take the default); ``form`` : "model",
+    "alt" or "alt2" for every effect (see ``effects_alt``).
     """
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]

@@ -22,6 +22,10 @@ Time is axis 0; commands in command units; n the take's DUs, m the markers::
                             y_n -> y_n (1 - kappa sum_{n' != n} y_n'). Truth: kappa is the
                             fraction each DU's response loses while another is at full command
                             (the model's kappa at the marker most in the other DU's field).
+    coupling   kappa        (form "alt2", a law the model does not have: strain-stiffening skin)
+      (alt2)                y_n -> y_n (1 - kappa sum_{n' != n} y_n'^2): the other DU's pull
+                            costs little at first and most near full command. Truth: kappa as
+                            for the alt form.
     saturation L (mm)       per DU, before summation: d_n -> d_n / sqrt(1 + (|d_n| / L)^2)
                             (algebraic, not tanh). Truth: L is the asymptotic largest
                             displacement of one DU.
@@ -78,6 +82,13 @@ def stick_slip(c: np.ndarray, halfwidth: float) -> np.ndarray:
 def coupled_drives(y: np.ndarray, kappa: float) -> np.ndarray:
     """y_n (1 - kappa sum_{n' != n} y_n') for y (n_samples, n_dus, n_markers)."""
     others = y.sum(axis=1, keepdims=True) - y
+    return y * (1.0 - kappa * others)
+
+
+def stiffening_coupling(y: np.ndarray, kappa: float) -> np.ndarray:
+    """y_n (1 - kappa sum_{n' != n} y_n'^2) for y (n_samples, n_dus, n_markers)."""
+    y2 = y * y
+    others = y2.sum(axis=1, keepdims=True) - y2
     return y * (1.0 - kappa * others)
 
 
