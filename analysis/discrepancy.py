@@ -409,11 +409,13 @@ def effective_n(residuals: list[np.ndarray], used: np.ndarray) -> float:
 
 def n_parameters(model: FaceModel, effect_name: str) -> int:
     """Parameters an effect adds: 1 for a global value, else per active curve (the form the
-    model holds: a coupling law is one value, its pair vectors 3 per pair and marker)."""
+    model holds: a coupling law is one value, its pair vectors 3 per pair and marker and order
+    term, 1 or 3 terms)."""
     held = model.effect(effect_name)
     cls = type(held) if held is not None else CATALOGUE[effect_name]
     if cls.pairwise:  # a 3D vector per DU pair driven together and marker (+ a law's value)
-        return (3 * max(len(model.pairs), 1) * int(model.active.any(axis=0).sum())
+        terms = 1 if model.C2 is None else 1 + model.C2.shape[1]
+        return (3 * terms * max(len(model.pairs), 1) * int(model.active.any(axis=0).sum())
                 + int(not cls.per_curve))
     if cls.name == "takeshift":
         return max(sum(len(v) for v in model.take_shifts.values()), 1)

@@ -136,6 +136,7 @@ class FaceModel:
     take_shifts: dict = field(default_factory=dict)  # take name -> {DU id: bias shift}
     pairs: tuple[tuple[int, int], ...] = ()
     C: np.ndarray | None = None
+    C2: np.ndarray | None = None  # (P, 2, M, 3) mm: the pairs' second order (pair_features)
     branch: np.ndarray | None = None  # (N, 2) per DU: (mix, kappa), see the module docstring
 
     def __post_init__(self) -> None:
@@ -217,7 +218,7 @@ class FaceModel:
             y_eff = e.interact(y_eff, D)
         d = _sum_over_dus(y_eff, D)
         if self.pairs:
-            d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C)
+            d = d + pair_terms(y, [self.du_ids[r] for r in rows], self.pairs, self.C, self.C2)
         k = 0
         for e in self.effects:
             for basis in e.bases(y_eff):  # the path is followed to where the response got
@@ -258,23 +259,38 @@ class FaceModel:
         return out
 
 
-def pair_features(y: np.ndarray, dus, pairs) -> tuple[list[int], np.ndarray]:
-    """The pairwise interaction features y_n y_n' (S, P_take, M) of a take's DUs ``dus`` for the
-    model's ``pairs`` present in the take, and their indices into ``pairs``."""
+def pair_features(y: np.ndarray, dus, pairs, order: int = 1) -> tuple[list[int], np.ndarray]:
+    """The pairwise interaction features of a take's DUs ``dus`` for the model's ``pairs``
+    present in the take, and their indices into ``pairs``: y_n y_n' (S, P_take, M) for
+    ``order`` 1; for ``order`` 2 (S, P_take, 3, M): y_n y_n', then y_n^2 y_n' and y_n y_n'^2,
+    the first order of how the interaction changes with each drive (a coupling of any smooth
+    shape g(y_n, y_n') that vanishes when either DU rests, g = y_n y_n' h, to first order in h)."""
     pos = {d: i for i, d in enumerate(dus)}
     idx = [k for k, (a, b) in enumerate(pairs) if a in pos and b in pos]
+    shape = (y.shape[0], 0, y.shape[2]) if order == 1 else (y.shape[0], 0, 3, y.shape[2])
     if not idx:
-        return [], np.zeros((y.shape[0], 0, y.shape[2]))
-    F = np.stack([y[:, pos[pairs[k][0]]] * y[:, pos[pairs[k][1]]] for k in idx], axis=1)
-    return idx, F
+        return [], np.zeros(shape)
+    ya = np.stack([y[:, pos[pairs[k][0]]] for k in idx], axis=1)
+    yb = np.stack([y[:, pos[pairs[k][1]]] for k in idx], axis=1)
+    F = ya * yb
+    if order == 1:
+        return idx, F
+    return idx, np.stack([F, F * ya, F * yb], axis=2)
 
 
-def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray) -> np.ndarray:
-    """Sum over the take's DU pairs of y_n y_n' C_pair,m (S, M, 3) mm; y (S, n_dus, M)."""
-    idx, F = pair_features(y, dus, pairs)
+def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray, C2: np.ndarray | None = None) -> np.ndarray:
+    """Sum over the take's DU pairs of y_n y_n' C_pair,m (S, M, 3) mm, plus y_n^2 y_n' C2_0 +
+    y_n y_n'^2 C2_1 where the model holds the second order C2 (P, 2, M, 3); y (S, n_dus, M)."""
+    if C2 is None:
+        idx, F = pair_features(y, dus, pairs)
+        if not idx:
+            return np.zeros((y.shape[0], y.shape[2], 3))
+        return np.einsum("spm,pmk->smk", F, C[idx])
+    idx, F = pair_features(y, dus, pairs, order=2)
     if not idx:
         return np.zeros((y.shape[0], y.shape[2], 3))
-    return np.einsum("spm,pmk->smk", F, C[idx])
+    Call = np.concatenate([C[idx][:, None], C2[idx]], axis=1)  # (P_take, 3, M, 3)
+    return np.einsum("sprm,prmk->smk", F, Call)
 
 
 def pair_kappa(model: FaceModel) -> float:
@@ -288,6 +304,8 @@ def pair_kappa(model: FaceModel) -> float:
     o = 1, the marker most in the other DU's field)."""
     if not model.pairs or model.C is None:
         return 0.0
+    # the loss with both DUs at full command: the first order plus the second's two terms
+    C_full = model.C if model.C2 is None else model.C + model.C2.sum(axis=1)
     mag = np.linalg.norm(model.D, axis=-1)
     o = mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
     loss, pull, wt = [], [], []
@@ -299,7 +317,7 @@ def pair_kappa(model: FaceModel) -> float:
                                                    1e-6 * np.einsum("mpp->m", G) ** 2 + 1e-18))
         if not ok.any():
             continue
-        f = np.linalg.solve(G[ok], np.einsum("mxp,mx->mp", A[ok], model.C[k, ok])[..., None])[..., 0]
+        f = np.linalg.solve(G[ok], np.einsum("mxp,mx->mp", A[ok], C_full[k, ok])[..., None])[..., 0]
         loss += [f[:, 0], f[:, 1]]
         pull += [o[j, ok], o[i, ok]]
         wt += [mag[i, ok] ** 2, mag[j, ok] ** 2]

@@ -790,41 +790,57 @@ def conditional_shifts(data: ModelData, model: FaceModel, k: int, iters: int = 2
     return {int(d): float(v) for d, v in zip(t.dus, s)}
 
 
-def _fit_pairs(data: ModelData, model: FaceModel, takes, kappa: bool = True) -> None:
-    """Fit the pair vectors C (P, M, 3) of ``model`` in place on the multi-DU takes among
-    ``takes``: per marker, linear least squares of the residual on y_n y_n' of each pair (after
-    any coupling law the model holds). ``kappa``: also read the coupling's kappa
+PAIR_ORDER = 2  # the pair terms' order in the drives (face_model.pair_features)
+
+
+def _fit_pairs(data: ModelData, model: FaceModel, takes, kappa: bool = True,
+               order: int | None = None) -> None:
+    """Fit the pair vectors C (P, M, 3), and for ``order`` 2 their second order C2 (P, 2, M,
+    3), of ``model`` in place on the multi-DU takes among ``takes``: per marker, linear least
+    squares of the residual (after any coupling law the model holds) on the pair features
+    (:func:`mocap.analysis.face_model.pair_features`). ``kappa``: also read the coupling's kappa
     (:func:`coupling_kappa`, into ``model.info``)."""
+    order = PAIR_ORDER if order is None else order
+    K = 1 if order == 1 else 3
     multi = multi_du_takes(data, takes)
     pairs = sorted({(a, b) for k in multi for i, a in enumerate(data.takes[k].dus)
                     for b in data.takes[k].dus[i + 1:] if a in data.du_ids and b in data.du_ids})
     M = len(data.marker_names)
     model.pairs = tuple(pairs)
     model.C = np.zeros((len(pairs), M, 3))
+    model.C2 = None if order == 1 else np.zeros((len(pairs), 2, M, 3))
     if not pairs:
         return
-    P = len(pairs)
+    P = len(pairs) * K
     G = np.zeros((M, P, P))
     bvec = np.zeros((M, P, 3))
+    plain = replace(model, pairs=(), C=None, C2=None)  # the prediction without the pair terms
     for k in multi:
         t = data.takes[k]
         sh = model.take_shifts.get(t.name, {})
         y = model.response(data.tables(k, model.effects), list(t.dus), t.trial,
                            np.array([sh.get(d, 0.0) for d in t.dus]))
-        idx, F = pair_features(y, list(t.dus), model.pairs)
+        idx, F = pair_features(y, list(t.dus), model.pairs, order)
         if not idx:
             continue
-        e = data.observed(k) - model.displacement_from_response(y, list(t.dus))
+        F = F.reshape(F.shape[0], -1, F.shape[-1])  # (S, P_take K, M), pair-major
+        e = data.observed(k) - plain.displacement_from_response(y, list(t.dus))
         ok = np.isfinite(e).all(axis=-1)  # (S, M)
         e = np.where(ok[..., None], e, 0.0)
         Fw = F * ok[:, None, :]
-        ii = np.array(idx)
+        ii = (np.array(idx)[:, None] * K + np.arange(K)[None]).ravel()
         G[:, ii[:, None], ii[None, :]] += np.einsum("spm,sqm->mpq", Fw, F)
         bvec[:, ii] += np.einsum("spm,smx->mpx", Fw, e)
-    ridge = 1e-9 * np.maximum(np.einsum("mpp->m", G), 1e-12)[:, None, None] * np.eye(P)
+    # the second-order features are nearly collinear with the first where the DUs of a take
+    # move together (a smile's plans): a small ridge keeps their vectors bounded there
+    ridge = (1e-9 if K == 1 else 1e-6) * np.maximum(np.einsum("mpp->m", G), 1e-12)[:, None, None] * np.eye(P)
     seen = np.einsum("mpp->mp", G) > 0
     C = np.linalg.solve(G + ridge + np.eye(P) * (~seen)[:, :, None], bvec)  # (M, P, 3)
-    model.C = np.transpose(np.where(seen[..., None], C, 0.0), (1, 0, 2)) * model.active.any(axis=0)[None, :, None]
+    C = np.where(seen[..., None], C, 0.0) * model.active.any(axis=0)[:, None, None]
+    C = np.transpose(C.reshape(M, len(pairs), K, 3), (1, 2, 0, 3))  # (pairs, K, M, 3)
+    model.C = np.ascontiguousarray(C[:, 0])
+    if K > 1:
+        model.C2 = np.ascontiguousarray(C[:, 1:])
     if kappa:
         model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
 
@@ -839,7 +855,7 @@ def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
     from mocap.analysis.model_effects import Coupling
 
     plain = replace(model, effects=tuple(e for e in model.effects if type(e).name != "coupling"),
-                    pairs=(), C=None, info={})
+                    pairs=(), C=None, C2=None, info={})
     pre = []
     for k in multi:
         t = data.takes[k]
@@ -1004,7 +1020,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
             data, m_best, multi_du_takes(data, takes))
     if null and cls.pairwise:  # a law with pair vectors: its null is no coupling at all, as
         #                        the pair vectors' own null (forms are compared by their gain)
-        m_null = replace(fixed.with_effects(others), pairs=(), C=None, info={})
+        m_null = replace(fixed.with_effects(others), pairs=(), C=None, C2=None, info={})
     if fixed is None:  # final polish of the curves at the chosen value
         same = best_key == null_key
         m_best = fit_curves(data, m_best.effects, takes, warm=m_best, iters=30)

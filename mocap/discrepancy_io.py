@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -165,7 +165,7 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
     if figures:
         L += ["", "## Figures", ""]
         L += [f"![{k}]({v})" for k, v in figures.items()]
-    st = meta.get("settings") or DiscrepancySettings().__dict__
+    st = meta.get("settings") or asdict(DiscrepancySettings())
     where = (f"or where it acts (on at least {st['local_min_n']} held-out residual vectors it moves "
              f"by more than half the noise floor) explains {100 * st['local_explained']:.0f} % of "
              f"their excess and removes {st['local_gain']:g} of a noise floor"

@@ -110,6 +110,29 @@ def test_two_hidden_effects_compose_in_the_simulator_and_the_model(face):
     assert np.abs(model.predict(rows, 700, trial=2) - truth).max() < 5e-3
 
 
+def test_second_order_pair_terms_are_the_plain_products():
+    """pair_terms with the second order C2: y_a y_b C + y_a^2 y_b C2_0 + y_a y_b^2 C2_1 summed
+    over the take's pairs, written out plainly for three DUs; first order alone without C2."""
+    from mocap.analysis.face_model import pair_terms
+
+    rng = np.random.default_rng(3)
+    S, M = 7, 5
+    y = rng.uniform(0, 1, (S, 3, M))
+    dus, pairs = [1, 7, 12], ((1, 7), (1, 12), (4, 7), (7, 12))
+    C, C2 = rng.normal(size=(4, M, 3)), rng.normal(size=(4, 2, M, 3))
+    want = np.zeros((S, M, 3))
+    want1 = np.zeros((S, M, 3))
+    pos = {1: 0, 7: 1, 12: 2}
+    for k, (a, b) in enumerate(pairs):
+        if a not in pos or b not in pos:
+            continue  # DU 4 is not in the take
+        ya, yb = y[:, pos[a], :, None], y[:, pos[b], :, None]
+        want1 += ya * yb * C[k]
+        want += ya * yb * C[k] + ya * ya * yb * C2[k, 0] + ya * yb * yb * C2[k, 1]
+    np.testing.assert_allclose(pair_terms(y, dus, pairs, C, C2), want, atol=1e-12)
+    np.testing.assert_allclose(pair_terms(y, dus, pairs, C), want1, atol=1e-12)
+
+
 def test_a_new_effect_plugs_in_without_editing_the_others():
     """An effect defined outside the catalogue (DUs that help each other: y_n (1 + g y_other))
     is predicted and identified by the same code, and its value recovered."""
