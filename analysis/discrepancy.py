@@ -100,7 +100,8 @@ class DiscrepancySettings:
         where the session's RMS did not (Bouc-Wen bowed, branch play straight). The numbers are
         reported in every candidate's evidence either way.
     max_steps : effects to add at most.
-    jobs : processes over candidates (spawned; 1 runs in this process).
+    jobs : processes over the base fits (each fold, all takes) and the candidates (spawned;
+        1 runs in this process). The results do not depend on it.
     """
 
     base: tuple[str, ...] = BASE
@@ -528,13 +529,17 @@ def _init_worker(data: ModelData) -> None:
     numba.set_num_threads(1)  # one process per core: no nested numba threads
 
 
+def _base_task(effects, takes) -> FaceModel:
+    return fit_base(_WORKER_DATA, effects, takes)
+
+
 def _candidate_task(current: CVFit, name: str, floor: float | None):
     t0 = time.perf_counter()
     return name, cv_candidate(_WORKER_DATA, current, name, floor=floor), time.perf_counter() - t0
 
 
 class _Runner:
-    """Runs candidate fits in this process or in a pool of spawned processes."""
+    """Runs the base and candidate fits in this process or in a pool of spawned processes."""
 
     def __init__(self, data: ModelData, jobs: int):
         self.data = data
@@ -545,6 +550,14 @@ class _Runner:
 
             self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
                                             initializer=_init_worker, initargs=(data,))
+
+    def base_fits(self, effects, takes_sets) -> list[FaceModel]:
+        """:func:`fit_base` on each set of takes, side by side in the pool (one after the other
+        without one); submitted in the order given, so the largest set should come first."""
+        if self.pool is None:
+            return [fit_base(self.data, effects, t) for t in takes_sets]
+        futures = [self.pool.submit(_base_task, effects, t) for t in takes_sets]
+        return [f.result() for f in futures]
 
     def map(self, current: CVFit, names: list[str], floor: float | None = None):
         if self.pool is None:
@@ -674,24 +687,28 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     data = prep.data
     floor = prep.noise_floor_mm
     effects = make_effects(settings.base)
-    current = cv_base(data, effects)
-    s, n, res = heldout(data, current.models)
-    stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
-                     prep.phase_labels)]
-    residual_sets = [res]
-    stage_models = [fit_base(data, effects, list(range(len(data.takes))))]
-    say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
-        f"noise floor {floor:.4f} mm ({prep.noise_source})")
-    untestable = {}
-    for name in settings.candidates:
-        why = CATALOGUE[name]().untestable(prep.schedules)
-        if why:
-            untestable[name] = why
-    steps: list[Step] = []
-    named: list[str] = []
-    evidence: list[dict] = []
     runner = _Runner(data, settings.jobs)
     try:
+        # the base on each fold (cv_base) and on all takes, side by side with jobs > 1 (all takes
+        # first: the largest fit runs beside the two folds' one after the other)
+        whole, *folds = runner.base_fits(effects, [list(range(len(data.takes))),
+                                                   fold_takes(data, 0), fold_takes(data, 1)])
+        s, n, res = heldout(data, folds)
+        current = CVFit(folds, s, n)
+        stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
+                         prep.phase_labels)]
+        residual_sets = [res]
+        stage_models = [whole]
+        say(f"base model ({stages[0]['model']}): held-out RMS {current.rms_mm:.4f} mm, "
+            f"noise floor {floor:.4f} mm ({prep.noise_source})")
+        untestable = {}
+        for name in settings.candidates:
+            why = CATALOGUE[name]().untestable(prep.schedules)
+            if why:
+                untestable[name] = why
+        steps: list[Step] = []
+        named: list[str] = []
+        evidence: list[dict] = []
         return _steps(data, prep, settings, current, res, stages, residual_sets, stage_models,
                       untestable, steps, named, evidence, runner, say)
     finally:

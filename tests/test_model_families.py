@@ -29,6 +29,7 @@ from mocap.analysis.discrepancy import (
     heldout,
     n_parameters,
     prepare,
+    run_discrepancy,
 )
 from mocap.analysis.face_model import make_effects
 from mocap.analysis.model_effects import BASE
@@ -78,8 +79,6 @@ def boucwen_bow_lag(tmp_path_factory):
     step weighs the lag against the base exactly as the hidden-effect check does (cv_base,
     cv_candidate, the held-out BIC score with the base's effective n), so the Bouc-Wen lag case
     reads its evidence there instead of fitting both again."""
-    from mocap.analysis.discrepancy import run_discrepancy
-
     root, truth = _session(tmp_path_factory, "boucwen-bow", "lag")
     prep = _prepared(root)
     res = run_discrepancy(prep, DiscrepancySettings(candidates=("lag", "deadtime")))
@@ -257,3 +256,24 @@ def test_coupling_of_a_shape_the_model_has_no_law_for(tmp_path):
     kappa = res.steps[0].parameters["kappa"]
     assert kappa == pytest.approx(truth["parameters"]["kappa"], rel=0.2), kappa
     assert res.final_heldout_rms_mm <= 1.4 * res.noise_floor_mm, res.final_heldout_rms_mm / res.noise_floor_mm
+
+
+def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
+    """With workers (jobs > 1) the workflow fits the base on each fold and on all takes side by
+    side in its pool: the same model as fitted in this process."""
+    from mocap.analysis.discrepancy import _Runner, fit_base, fold_takes
+
+    root, _ = _session(tmp_path_factory, "pi-bow", "none")
+    data = _prepared(root).data
+    effects = make_effects(BASE)
+    here = fit_base(data, effects, fold_takes(data, 1))
+    runner = _Runner(data, 2)
+    try:
+        (pooled,) = runner.base_fits(effects, [fold_takes(data, 1)])
+    finally:
+        runner.close()
+    for name in ("alpha", "beta", "r", "D", "B", "density", "branch"):
+        np.testing.assert_allclose(getattr(pooled, name), getattr(here, name), rtol=1e-9, atol=1e-12)
+    assert pooled.take_shifts.keys() == here.take_shifts.keys()
+    for take, shifts in here.take_shifts.items():
+        assert pooled.take_shifts[take] == pytest.approx(shifts, rel=1e-9, abs=1e-12), take

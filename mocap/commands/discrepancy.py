@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--margin", type=float, default=10.0, help="held-out BIC units to name an effect (10)")
     p.add_argument("--max-steps", type=int, default=4, help="effects to add at most (4)")
     p.add_argument("--jobs", type=int, default=None,
-                   help="processes over candidate effects (default: all cores)")
+                   help="processes over the base fits and the candidate effects (default: all cores)")
     p.add_argument("--no-recording", action="store_true", help="do not write discrepancy.rrd")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
 
