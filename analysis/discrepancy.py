@@ -433,10 +433,14 @@ def fit_base(data: ModelData, effects, takes) -> FaceModel:
     return fit_curves(data, m.effects, takes, warm=m)
 
 
+def cv_fit(data: ModelData, models: list[FaceModel]) -> tuple[CVFit, list[np.ndarray]]:
+    """Two fold models scored on the other fold: the CVFit and its held-out residuals."""
+    s, n, res = heldout(data, models)
+    return CVFit(models, s, n), res
+
+
 def cv_base(data: ModelData, effects) -> CVFit:
-    models = [fit_base(data, effects, fold_takes(data, f)) for f in (0, 1)]
-    s, n, _ = heldout(data, models)
-    return CVFit(models, s, n)
+    return cv_fit(data, [fit_base(data, effects, fold_takes(data, f)) for f in (0, 1)])[0]
 
 
 def reported_value(prof, cls) -> float:
@@ -693,8 +697,7 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
         # first: the largest fit runs beside the two folds' one after the other)
         whole, *folds = runner.base_fits(effects, [list(range(len(data.takes))),
                                                    fold_takes(data, 0), fold_takes(data, 1)])
-        s, n, res = heldout(data, folds)
-        current = CVFit(folds, s, n)
+        current, res = cv_fit(data, folds)
         stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
                          prep.phase_labels)]
         residual_sets = [res]

@@ -281,14 +281,11 @@ def pair_features(y: np.ndarray, dus, pairs, order: int = 1) -> tuple[list[int],
 def pair_terms(y: np.ndarray, dus, pairs, C: np.ndarray, C2: np.ndarray | None = None) -> np.ndarray:
     """Sum over the take's DU pairs of y_n y_n' C_pair,m (S, M, 3) mm, plus y_n^2 y_n' C2_0 +
     y_n y_n'^2 C2_1 where the model holds the second order C2 (P, 2, M, 3); y (S, n_dus, M)."""
-    if C2 is None:
-        idx, F = pair_features(y, dus, pairs)
-        if not idx:
-            return np.zeros((y.shape[0], y.shape[2], 3))
-        return np.einsum("spm,pmk->smk", F, C[idx])
-    idx, F = pair_features(y, dus, pairs, order=2)
+    idx, F = pair_features(y, dus, pairs, order=1 if C2 is None else 2)
     if not idx:
         return np.zeros((y.shape[0], y.shape[2], 3))
+    if C2 is None:
+        return np.einsum("spm,pmk->smk", F, C[idx])
     Call = np.concatenate([C[idx][:, None], C2[idx]], axis=1)  # (P_take, 3, M, 3)
     return np.einsum("sprm,prmk->smk", F, Call)
 

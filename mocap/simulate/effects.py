@@ -207,8 +207,8 @@ def compose_displacement(effects, y: np.ndarray, D: np.ndarray, normals: np.ndar
     Shapes as :meth:`HiddenEffect.displacement`. Effects absent from ``effects`` are identity.
     """
     by_name = {e.name: e.strength for e in effects}
-    alt_forms = {e.name for e in effects if e.alt}
     forms = {e.name: e.form for e in effects}
+    alt_forms = {n for n, f in forms.items() if f != "model"}
     if "coupling" in by_name and y.shape[1] > 1:
         if forms["coupling"] == "alt2":
             y_eff = alt.stiffening_coupling(y, by_name["coupling"])
