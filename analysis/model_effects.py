@@ -252,8 +252,9 @@ class Coupling(Effect):
     unit: ClassVar[str] = ""
     meaning: ClassVar[str] = ("DUs share skin: each marker moves by y_n y_n' C_nn'm more than the sum "
                               "of the DUs' motions (C a 3D vector per DU pair and marker, fitted on "
-                              "takes driving several DUs); kappa reads C as the law y_n -> y_n (1 - "
-                              "kappa sum_other y_n' o_n'm), o the other DU's relative pull")
+                              "takes driving several DUs); kappa is the fraction of its travel along "
+                              "each marker's path a DU loses while another is at full command, o the "
+                              "other DU's relative pull at the marker or 1 (model_fit.coupling_kappa)")
     stage: ClassVar[str] = "interact"
     affects_curves: ClassVar[bool] = False
     per_curve: ClassVar[bool] = True
@@ -298,8 +299,8 @@ class CouplingLaw(Coupling):
     the law alone held out at 2.70 x the noise floor, the pair vectors alone at 1.43, both
     together at 1.22). One global parameter (profiled, the curves held: single-DU takes do not
     depend on it), the pair vectors refitted at each value; kappa is reported as
-    :class:`Coupling`'s, read from the whole fit (:func:`mocap.analysis.model_fit.coupling_kappa`),
-    not the law's share of it."""
+    :class:`Coupling`'s, read from the data in travel along the paths
+    (:func:`mocap.analysis.model_fit.coupling_kappa`), not the law's share of the fit."""
 
     meaning: ClassVar[str] = ("DUs share skin: each DU's drive loses kappa x the others' drives "
                               "(weighted by their relative pull at the marker) before it moves "

@@ -842,20 +842,132 @@ def _fit_pairs(data: ModelData, model: FaceModel, takes, kappa: bool = True,
     if K > 1:
         model.C2 = np.ascontiguousarray(C[:, 1:])
     if kappa:
-        model.info["coupling_kappa"] = coupling_kappa(data, model, multi)
+        model.info["coupling_kappa"] = coupling_kappa(data, model, takes)
 
 
-def coupling_kappa(data: ModelData, model: FaceModel, multi) -> float:
-    """The coupling's kappa: the fraction of a DU's response lost while another DU is at full
-    command, at the markers most in the other DU's field. The pair vectors C are not unique when
-    takes drive three DUs with one time course, so kappa is read by refitting the multi-DU takes
-    ``multi`` with a scalar law instead of C, y_n -> y_n (1 - kappa sum_other y_n' o_n'm), with
-    o the other DU's relative pull (|D_n'm| / max_m |D_n'm|) or o = 1 (the same loss at every
-    marker); the law that fits better gives kappa (both agree where o = 1). Grid then parabola."""
+def without_coupling(model: FaceModel) -> FaceModel:
+    """``model`` without its coupling (no coupling effect, no pair vectors)."""
+    return replace(model, effects=tuple(e for e in model.effects if type(e).name != "coupling"),
+                   pairs=(), C=None, C2=None, info={})
+
+
+FULL_RESPONSE = 0.97  # a DU is at full command where the model's response reaches this
+
+
+@dataclass(frozen=True)
+class TravelPath:
+    """One DU's marker paths as measured in its single-DU takes, parametrised by travel.
+
+    chord (M, 3) mm the mean displacement where the DU is at full command; coef (M, 2, 3) mm the
+    path's departure from its chord, d(s) = s chord + s (1 - s) (coef_0 + s coef_1), s the
+    travel (the displacement's projection on the chord over |chord|^2: 0 at rest, 1 at full
+    command). The travel does not depend on how a model parametrises its drive."""
+
+    chord: np.ndarray
+    coef: np.ndarray
+
+    def at(self, s: np.ndarray) -> np.ndarray:
+        """Displacements (..., M, 3) mm at travels s (..., M)."""
+        s = np.asarray(s, float)[..., None]
+        return s * self.chord + s * (1.0 - s) * (self.coef[:, 0] + s * self.coef[:, 1])
+
+
+def travel_path(obs: np.ndarray, y: np.ndarray, used: np.ndarray) -> TravelPath | None:
+    """A DU's :class:`TravelPath` from its single-DU takes' displacements ``obs`` (S, M, 3) mm
+    and the model's responses ``y`` (S, M) at them (which samples are at full command, nothing
+    else); None without a sample at full command. The departure from the chord is fitted by
+    linear least squares per marker on the samples with travel in [-0.1, 1.1]."""
+    fin = np.isfinite(obs).all(axis=-1) & used[None]
+    full = fin & (y >= FULL_RESPONSE)
+    n_full = full.sum(axis=0)
+    if not n_full.any():
+        return None
+    x = np.where(fin[..., None], obs, 0.0)
+    chord = np.einsum("sm,smk->mk", full, x) / np.maximum(n_full, 1)[:, None]
+    c2 = np.sum(chord**2, axis=-1)
+    s = np.einsum("smk,mk->sm", x, chord) / np.maximum(c2, 1e-12)
+    w = fin & (s > -0.1) & (s < 1.1)
+    F = np.stack([s * (1 - s), s * s * (1 - s)], axis=-1) * w[..., None]  # (S, M, 2)
+    r = np.where(w[..., None], x - s[..., None] * chord[None], 0.0)
+    G = np.einsum("smi,smj->mij", F, F)
+    G = G + (1e-9 * np.maximum(np.trace(G, axis1=1, axis2=2), 1e-12))[:, None, None] * np.eye(2)
+    coef = np.linalg.solve(G, np.einsum("smi,smk->mik", F, r))  # (M, 2, 3)
+    coef = np.where((n_full > 0)[:, None, None], coef, 0.0)
+    return TravelPath(chord, coef)
+
+
+def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
+    """The coupling's kappa: the fraction of its travel a DU loses while another DU is at full
+    command (at the markers most in the other DU's field for the pull-weighted law), read where
+    the multi-DU takes among ``takes`` hold all their DUs at full command.
+
+    Each DU's paths are measured in its single-DU takes as functions of the travel along the
+    chord (:func:`travel_path`); where a take holds its DUs at full command, the law puts each
+    DU at travel 1 - kappa sum_other o_n'm (o the other DU's relative pull, |chord_n'm| /
+    max_m |chord_n'm|, or 1 at every marker) and the marker at the sum of the DUs' paths there.
+    kappa is fitted to the takes' mean displacements there by least squares (a grid, then a
+    parabola), with the weighting that fits better (``model.info["coupling_law"]``). Neither the
+    pair vectors nor the model's drive enter: the model's y is the face's drive only up to a
+    reparametrisation its paths absorb on single-DU takes, and a loss in y is a loss in travel
+    only where the two agree (the law refitted in y read 0.204 for 0.35 on a branch-play face
+    with straight paths; this reading 0.35, benchmarks/coupling_reading.md). Where no multi-DU
+    take holds its DUs at full command: :func:`law_kappa`."""
+    plain = without_coupling(model)
+    multi = multi_du_takes(data, takes)
+
+    def response(k):  # where the face is at full command: without the take's shift, which
+        #              on a multi-DU take can hold part of the coupling's loss
+        t = data.takes[k]
+        return plain.response(data.tables(k, plain.effects), list(t.dus), t.trial)
+
+    holds = []
+    for k in multi:
+        obs = data.observed(k)
+        ok = (response(k).min(axis=1) >= FULL_RESPONSE) & np.isfinite(obs).all(axis=-1) & data.used[None]
+        cnt = ok.sum(axis=0)
+        if cnt.any():
+            mean = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0)) / np.maximum(cnt, 1)[:, None]
+            holds.append((list(data.takes[k].dus), mean, cnt))
+    paths: dict[int, TravelPath | None] = {}
+    for du in sorted({d for dus, _, _ in holds for d in dus}):
+        single = [k for k in takes if tuple(data.takes[k].dus) == (du,)]
+        paths[du] = None if not single else travel_path(
+            np.concatenate([data.observed(k) for k in single]),
+            np.concatenate([response(k)[:, 0] for k in single]), data.used)
+    holds = [h for h in holds if all(paths[d] is not None for d in h[0])]
+    if not holds:
+        model.info["coupling_law"] = "drive"
+        return law_kappa(data, model, multi)
+    grid = np.round(np.arange(-0.3, 1.2001, 0.01), 6)
+    best = (np.inf, 0.0, "")
+    for law in ("pull-weighted", "uniform"):
+        cost = np.zeros(grid.size)
+        for dus, mean, cnt in holds:
+            mag = np.stack([np.linalg.norm(paths[d].chord, axis=-1) for d in dus])  # (n, M)
+            o = np.ones_like(mag) if law == "uniform" else mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+            others = o.sum(axis=0, keepdims=True) - o
+            pred = sum(paths[d].at(1.0 - grid[:, None] * others[i][None]) for i, d in enumerate(dus))
+            cost += np.einsum("m,gmk->g", cnt, (mean[None] - pred) ** 2)
+        i = int(np.clip(np.argmin(cost), 1, grid.size - 2))
+        a, b, _ = np.polyfit(grid[i - 1:i + 2], cost[i - 1:i + 2], 2)
+        v = float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
+        if cost[i] < best[0]:
+            best = (float(cost[i]), v, law)
+    model.info["coupling_law"] = best[2]
+    return best[1]
+
+
+def law_kappa(data: ModelData, model: FaceModel, multi) -> float:
+    """kappa in the model's drive: the multi-DU takes ``multi`` refitted with a scalar law
+    instead of the pair vectors, y_n -> y_n (1 - kappa sum_other y_n' o_n'm), with o the other
+    DU's relative pull (|D_n'm| / max_m |D_n'm|) or o = 1 (the same loss at every marker); the
+    law that fits better gives kappa. Grid then parabola. The fallback of :func:`coupling_kappa`
+    where no multi-DU take holds its DUs at full command: the model's y is the face's drive only
+    up to a reparametrisation its paths absorb, and the reading follows it (on a branch-play face
+    with straight paths it read 0.204 for 0.35)."""
     from mocap.analysis.model_effects import Coupling
 
-    plain = replace(model, effects=tuple(e for e in model.effects if type(e).name != "coupling"),
-                    pairs=(), C=None, C2=None, info={})
+    plain = without_coupling(model)
     pre = []
     for k in multi:
         t = data.takes[k]
@@ -1016,8 +1128,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
         if sse(data, m, takes)[0] < cache[null_key][0]:
             m_null = m
     if cls.pairwise and fixed is not None:
-        m_best.info["coupling_kappa"] = coupling_kappa(
-            data, m_best, multi_du_takes(data, takes))
+        m_best.info["coupling_kappa"] = coupling_kappa(data, m_best, takes)
     if null and cls.pairwise:  # a law with pair vectors: its null is no coupling at all, as
         #                        the pair vectors' own null (forms are compared by their gain)
         m_null = replace(fixed.with_effects(others), pairs=(), C=None, C2=None, info={})

@@ -258,6 +258,41 @@ def test_offchord_path_leaves_off_its_chord_and_ends_at_the_peak():
     assert 0.2 < y_peak < 0.45, y_peak
 
 
+def test_coupling_travel_truth_equals_kappa_where_travel_is_the_drive():
+    """The coupling's truth as data can read it (travel along each marker's path,
+    VirtualFace.travel_kappa): the law's kappa on straight and bowed paths, whose projection on
+    the chord is the drive; on paths that end off the chord, each marker's loss from the cubic
+    Bezier's projection written out (3 y (1 - y)^2 cos t + 2 y^2 (1 - y) + y^3), averaged as the
+    docstring says, plainly."""
+    kappa = 0.35
+    for name in ("pi-straight", "pi-bow"):
+        face = family_face(name)
+        assert face.travel_kappa(kappa) == pytest.approx(kappa, abs=1e-9)
+        assert face.travel_kappa(kappa, pull_weighted=True) == pytest.approx(kappa, abs=1e-9)
+    face = family_face("pi-offchord")
+    D, P1 = face.D_mm, face.traits.path_vec
+    mag = np.linalg.norm(D, axis=-1)
+    for pull in (False, True):
+        num = den = 0.0
+        for a in range(len(DUS)):
+            for b in range(len(DUS)):
+                if a == b:
+                    continue
+                for m in range(D.shape[1]):
+                    if mag[a, m] == 0:
+                        continue
+                    o = mag[b, m] / mag[b].max() if pull else 1.0
+                    y = 1.0 - kappa * o
+                    cos_t = float(P1[a, m] @ D[a, m]) / (mag[a, m] * np.linalg.norm(P1[a, m]))
+                    travel = 3 * y * (1 - y) ** 2 * cos_t + 2 * y**2 * (1 - y) + y**3
+                    w = mag[a, m] ** 2
+                    num += w * o * (1.0 - travel)
+                    den += w * o * o
+        got = face.travel_kappa(kappa, pull_weighted=pull)
+        assert got == pytest.approx(num / den, rel=1e-9)
+        assert 0.2 < got < kappa  # the travel runs ahead of the drive: less of it is lost
+
+
 # ---- sessions ---------------------------------------------------------------------------------
 
 def small_labeled(root, family, **kw):

@@ -57,3 +57,13 @@ def realised_session_drift(info: dict) -> float:
         raise ValueError(f"truth.json: the takes span {np.unique(tr).size} trial; a drift needs 2")
     A = np.column_stack([tr] + [(du == d).astype(float) for d in np.unique(du)])
     return float(np.linalg.lstsq(A, v, rcond=None)[0][0])
+
+
+def realised_coupling_kappa(info: dict) -> float:
+    """The coupling's kappa as the takes show it: the loss of travel along each marker's path
+    while another DU is at full command (``coupling_travel_kappa``, written by the simulator from
+    its own paths: :meth:`mocap.simulate.face.VirtualFace.travel_kappa`); the law's kappa where the
+    truth predates it. Equal to the law's kappa on straight and bowed paths."""
+    if "coupling_travel_kappa" in info:
+        return float(info["coupling_travel_kappa"])
+    return float(effect_parameters(info)["coupling"]["kappa"])
