@@ -896,6 +896,24 @@ def travel_path(obs: np.ndarray, y: np.ndarray, used: np.ndarray) -> TravelPath 
     return TravelPath(chord, coef)
 
 
+def travel_paths(data: ModelData, model: FaceModel, takes, dus=None) -> dict[int, TravelPath]:
+    """{DU id: :class:`TravelPath`} of ``dus`` (default: all the model's) from their single-DU
+    takes among ``takes``; full command where ``model``'s response without the take's shift
+    reaches :data:`FULL_RESPONSE`. DUs without such takes are left out."""
+    out = {}
+    for du in (model.du_ids if dus is None else dus):
+        single = [k for k in takes if tuple(data.takes[k].dus) == (du,)]
+        if not single:
+            continue
+        y = [model.response(data.tables(k, model.effects), [du], data.takes[k].trial)[:, 0]
+             for k in single]
+        path = travel_path(np.concatenate([data.observed(k) for k in single]),
+                           np.concatenate(y), data.used)
+        if path is not None:
+            out[int(du)] = path
+    return out
+
+
 def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     """The coupling's kappa: the fraction of its travel a DU loses while another DU is at full
     command (at the markers most in the other DU's field for the pull-weighted law), read where
@@ -928,13 +946,8 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
         if cnt.any():
             mean = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0)) / np.maximum(cnt, 1)[:, None]
             holds.append((list(data.takes[k].dus), mean, cnt))
-    paths: dict[int, TravelPath | None] = {}
-    for du in sorted({d for dus, _, _ in holds for d in dus}):
-        single = [k for k in takes if tuple(data.takes[k].dus) == (du,)]
-        paths[du] = None if not single else travel_path(
-            np.concatenate([data.observed(k) for k in single]),
-            np.concatenate([response(k)[:, 0] for k in single]), data.used)
-    holds = [h for h in holds if all(paths[d] is not None for d in h[0])]
+    paths = travel_paths(data, plain, takes, sorted({d for dus, _, _ in holds for d in dus}))
+    holds = [h for h in holds if all(d in paths for d in h[0])]
     if not holds:
         model.info["coupling_law"] = "drive"
         return law_kappa(data, model, multi)
