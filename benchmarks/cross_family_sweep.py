@@ -106,15 +106,21 @@ def rescore_drift(row: dict) -> dict:
     return _drift_errors(row, realised_drift(info))
 
 
-def _drift_errors(row: dict, realised: float) -> dict:
-    row = {**row, "realised": {**row.get("realised", {}), "beta_per_trial": round(realised, 5)}}
-    est = row["parameters"].get("beta_per_trial")
-    if "drift" in row["named"] and est is not None:
+def _realised_errors(row: dict, effect: str, parameter: str, realised: float, vs: str) -> dict:
+    """``row`` with ``effect``'s error taken against what the takes hold (``realised``), the
+    error against the equation's parameter kept under ``vs``."""
+    row = {**row, "realised": {**row.get("realised", {}), parameter: round(realised, 5)}}
+    est = row["parameters"].get(parameter)
+    if effect in row["named"] and est is not None:
         errs = dict(row["relative_errors"])
-        row["relative_errors_vs_k"] = {"drift": errs.get("drift")}
-        errs["drift"] = round((est - realised) / realised, 4)
+        row[vs] = {effect: errs.get(effect)}
+        errs[effect] = round((est - realised) / realised, 4)
         row["relative_errors"] = errs
     return row
+
+
+def _drift_errors(row: dict, realised: float) -> dict:
+    return _realised_errors(row, "drift", "beta_per_trial", realised, "relative_errors_vs_k")
 
 
 def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None,
@@ -156,7 +162,8 @@ def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None
             "seconds": round(time.perf_counter() - t0, 1)}
     row["local"] = settings.local
     if "coupling" in hidden:
-        row = _coupling_errors(row, realised_coupling(info))
+        row = _realised_errors(row, "coupling", "kappa", realised_coupling(info),
+                               "relative_errors_vs_law")
     return _drift_errors(row, realised_drift(info)) if "drift" in hidden else row
 
 
@@ -172,15 +179,6 @@ def realised_coupling(info: dict) -> float:
     return realised_coupling_kappa(info)
 
 
-def _coupling_errors(row: dict, realised: float) -> dict:
-    row = {**row, "realised": {**row.get("realised", {}), "kappa": round(realised, 5)}}
-    est = row["parameters"].get("kappa")
-    if "coupling" in row["named"] and est is not None:
-        errs = dict(row["relative_errors"])
-        row["relative_errors_vs_law"] = {"coupling": errs.get("coupling")}
-        errs["coupling"] = round((est - realised) / realised, 4)
-        row["relative_errors"] = errs
-    return row
 
 
 def _brief(e: dict) -> list:
