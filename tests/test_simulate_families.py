@@ -263,7 +263,7 @@ def test_coupling_travel_truth_equals_kappa_where_travel_is_the_drive():
     VirtualFace.travel_kappa): the law's kappa on straight and bowed paths, whose projection on
     the chord is the drive; on paths that end off the chord, each marker's loss from the cubic
     Bezier's projection written out (3 y (1 - y)^2 cos t + 2 y^2 (1 - y) + y^3), averaged as the
-    docstring says, plainly."""
+    docstring says, plainly, over every pair and over the groups a session drives together."""
     kappa = 0.35
     for name in ("pi-straight", "pi-bow"):
         face = family_face(name)
@@ -272,25 +272,26 @@ def test_coupling_travel_truth_equals_kappa_where_travel_is_the_drive():
     face = family_face("pi-offchord")
     D, P1 = face.D_mm, face.traits.path_vec
     mag = np.linalg.norm(D, axis=-1)
+    pairs = [(a, b) for a in DUS for b in DUS if a < b]
     for pull in (False, True):
-        num = den = 0.0
-        for a in range(len(DUS)):
-            for b in range(len(DUS)):
-                if a == b:
-                    continue
-                for m in range(D.shape[1]):
-                    if mag[a, m] == 0:
-                        continue
-                    o = mag[b, m] / mag[b].max() if pull else 1.0
-                    y = 1.0 - kappa * o
-                    cos_t = float(P1[a, m] @ D[a, m]) / (mag[a, m] * np.linalg.norm(P1[a, m]))
-                    travel = 3 * y * (1 - y) ** 2 * cos_t + 2 * y**2 * (1 - y) + y**3
-                    w = mag[a, m] ** 2
-                    num += w * o * (1.0 - travel)
-                    den += w * o * o
-        got = face.travel_kappa(kappa, pull_weighted=pull)
-        assert got == pytest.approx(num / den, rel=1e-9)
-        assert 0.2 < got < kappa  # the travel runs ahead of the drive: less of it is lost
+        for groups in (None, [(1, 7, 12), (1, 4)]):
+            num = den = 0.0
+            for group in groups or pairs:
+                rows = [DUS.index(g) for g in group]
+                for a in rows:
+                    for m in range(D.shape[1]):
+                        if mag[a, m] == 0:
+                            continue
+                        x = sum(mag[b, m] / mag[b].max() if pull else 1.0 for b in rows if b != a)
+                        y = 1.0 - kappa * x
+                        cos_t = float(P1[a, m] @ D[a, m]) / (mag[a, m] * np.linalg.norm(P1[a, m]))
+                        travel = 3 * y * (1 - y) ** 2 * cos_t + 2 * y**2 * (1 - y) + y**3
+                        w = mag[a, m] ** 2
+                        num += w * x * (1.0 - travel)
+                        den += w * x * x
+            got = face.travel_kappa(kappa, pull_weighted=pull, groups=groups)
+            assert got == pytest.approx(num / den, rel=1e-9)
+            assert 0.2 < got < kappa  # the travel runs ahead of the drive: less of it is lost
 
 
 # ---- sessions ---------------------------------------------------------------------------------

@@ -199,37 +199,41 @@ class VirtualFace:
         vec = self.traits.path_vec[du_rows] if self.traits is not None else np.zeros_like(D)
         return path_displacement(self.family.path, y, D, vec)
 
-    def travel_kappa(self, kappa: float, pull_weighted: bool = False) -> float:
+    def travel_kappa(self, kappa: float, pull_weighted: bool = False, groups=None) -> float:
         """A coupling's kappa as data can read it: in travel along each marker's path rather
         than in this simulator's drive.
 
         The travel is the displacement's projection on the marker's chord (its displacement at
-        full command) over |chord|^2. For every ordered pair of the face's DUs (n, n'), with n'
-        at full command, DU n's drive at marker m drops from 1 to 1 - kappa o_n'm (o = 1, or the
-        other DU's relative pull |D_n'm| / max_m |D_n'm| for the pull-weighted law) and the
-        marker loses L_nm of its travel; returned is the least-squares slope of L on o over all
-        pairs and markers, weighted by |D_nm|^2 (for o = 1 the weighted mean loss). A loss of
-        drive shows as a loss of travel, and the drive is this simulator's parametrisation of
-        the path (a model reparametrises it freely). Equal to kappa on straight and bowed paths
-        (the bow is perpendicular to the chord); on paths that end off the chord the travel
-        runs ahead of the drive (3 y (1 - y)^2 cos t + 2 y^2 (1 - y) + y^3), so less is lost.
+        full command) over |chord|^2. For each group of DUs driven together (``groups``: DU id
+        tuples, default every pair of the face's DUs) with all of them at full command, DU n's
+        drive at marker m drops from 1 to 1 - kappa x_nm, x_nm = sum over the others of o_n'm
+        (o = 1, or the other DU's relative pull |D_n'm| / max_m |D_n'm| for the pull-weighted
+        law), and the marker loses L_nm of its travel; returned is the least-squares slope of L
+        on x over the groups, DUs and markers, weighted by |D_nm|^2 (with o = 1 in pairs: the
+        weighted mean loss). A loss of drive shows as a loss of travel, and the drive is this
+        simulator's parametrisation of the path (a model reparametrises it freely). Equal to
+        kappa on straight and bowed paths (the bow is perpendicular to the chord); on paths that
+        end off the chord the travel runs ahead of the drive (3 y (1 - y)^2 cos t + 2 y^2
+        (1 - y) + y^3), so less is lost.
         """
         n, M = self.D_mm.shape[:2]
         mag = np.linalg.norm(self.D_mm, axis=-1)  # (n, M)
+        o = mag / mag.max(axis=1, keepdims=True) if pull_weighted else np.ones((n, M))
         full = self.displacement(np.ones((1, n, M)), self.D_mm, np.arange(n))[0]  # (n, M, 3)
         c2 = np.sum(full**2, axis=-1)
+        if groups is None:
+            groups = [(a, b) for a in self.du_ids for b in self.du_ids if a < b]
         num = den = 0.0
-        for a in range(n):
-            for b in range(n):
-                if a == b:
-                    continue
-                o = mag[b] / mag[b].max() if pull_weighted else np.ones(M)
+        for group in groups:
+            rows = [self.du_index(d) for d in group]
+            for a in rows:
+                x = sum(o[b] for b in rows if b != a)  # (M,)
                 y = np.ones((1, n, M))
-                y[0, a] = 1.0 - kappa * o
+                y[0, a] = 1.0 - kappa * x
                 d = self.displacement(y, self.D_mm, np.arange(n))[0, a]  # (M, 3)
                 lost = 1.0 - np.sum(d * full[a], axis=-1) / np.where(c2[a] > 0, c2[a], 1.0)
-                num += np.sum(c2[a] * o * lost)
-                den += np.sum(c2[a] * o * o)
+                num += np.sum(c2[a] * x * lost)
+                den += np.sum(c2[a] * x * x)
         return float(num / den) if den > 0 else float(kappa)
 
 

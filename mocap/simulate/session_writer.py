@@ -321,11 +321,14 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
     }
     coupling = effect_parameters(info).get("coupling")
     if coupling:
-        # the coupling's loss as the takes show it: in travel along each marker's path
+        # the coupling's loss as the takes show it: in travel along each marker's path, for
+        # the groups of DUs the session drives together
         part = next(p for p in info["effect"].get("effects", [info["effect"]])
                     if p["name"] == "coupling")
+        groups = sorted({tuple(t["dus"]) for t in take_meta if len(t["dus"]) > 1})
         info["coupling_travel_kappa"] = face.travel_kappa(
-            coupling["kappa"], pull_weighted=part.get("form", "model") == "model")
+            coupling["kappa"], pull_weighted=part.get("form", "model") == "model",
+            groups=groups or None)
     write_text(truth / "truth.json", json.dumps(info, indent=2))
     write_text(sess / "session.toml", manifest_text(cfg, rig, takes, files, cmd_files))
     return {"session": str(sess), "truth": str(truth), "takes": len(takes),
