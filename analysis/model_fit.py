@@ -941,11 +941,12 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     holds = []
     for k in multi:
         obs = data.observed(k)
-        ok = (response(k).min(axis=1) >= FULL_RESPONSE) & np.isfinite(obs).all(axis=-1) & data.used[None]
+        ok = ((response(k).min(axis=1) >= FULL_RESPONSE) & np.isfinite(obs).all(axis=-1)
+              & data.used[None])
         cnt = ok.sum(axis=0)
         if cnt.any():
-            mean = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0)) / np.maximum(cnt, 1)[:, None]
-            holds.append((list(data.takes[k].dus), mean, cnt))
+            total = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0))
+            holds.append((list(data.takes[k].dus), total / np.maximum(cnt, 1)[:, None], cnt))
     paths = travel_paths(data, plain, takes, sorted({d for dus, _, _ in holds for d in dus}))
     holds = [h for h in holds if all(d in paths for d in h[0])]
     if not holds:
@@ -957,9 +958,11 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
         cost = np.zeros(grid.size)
         for dus, mean, cnt in holds:
             mag = np.stack([np.linalg.norm(paths[d].chord, axis=-1) for d in dus])  # (n, M)
-            o = np.ones_like(mag) if law == "uniform" else mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12)
+            o = (np.ones_like(mag) if law == "uniform"
+                 else mag / np.maximum(mag.max(axis=1, keepdims=True), 1e-12))
             others = o.sum(axis=0, keepdims=True) - o
-            pred = sum(paths[d].at(1.0 - grid[:, None] * others[i][None]) for i, d in enumerate(dus))
+            pred = sum(paths[d].at(1.0 - grid[:, None] * others[i][None])
+                       for i, d in enumerate(dus))
             cost += np.einsum("m,gmk->g", cnt, (mean[None] - pred) ** 2)
         i = int(np.clip(np.argmin(cost), 1, grid.size - 2))
         a, b, _ = np.polyfit(grid[i - 1:i + 2], cost[i - 1:i + 2], 2)
