@@ -253,8 +253,8 @@ class Coupling(Effect):
     meaning: ClassVar[str] = ("DUs share skin: each marker moves by y_n y_n' C_nn'm more than the sum "
                               "of the DUs' motions (C a 3D vector per DU pair and marker, fitted on "
                               "takes driving several DUs); kappa is the fraction of its travel along "
-                              "each marker's path a DU loses while another is at full command, o the "
-                              "other DU's relative pull at the marker or 1 (model_fit.coupling_kappa)")
+                              "each marker's path a DU loses while another DU is at full command, "
+                              "read where the takes hold them there")
     stage: ClassVar[str] = "interact"
     affects_curves: ClassVar[bool] = False
     per_curve: ClassVar[bool] = True
@@ -306,7 +306,8 @@ class CouplingLaw(Coupling):
                               "(weighted by their relative pull at the marker) before it moves "
                               "the marker along its own path, y_n -> y_n (1 - kappa sum_other "
                               "y_n' o_n'm), and a 3D vector per DU pair and marker takes what "
-                              "the law leaves")
+                              "the law leaves; the kappa reported is the fraction of its travel a "
+                              "DU loses while another is at full command, read from the takes")
     form: ClassVar[str] = "law, pull-weighted"
     per_curve: ClassVar[bool] = False
 
@@ -319,7 +320,9 @@ class UniformCouplingLaw(CouplingLaw):
     meaning: ClassVar[str] = ("DUs share their drive: each DU's drive loses kappa x the others' "
                               "drives, the same at every marker, before it moves the marker along "
                               "its own path, y_n -> y_n (1 - kappa sum_other y_n'), and a 3D "
-                              "vector per DU pair and marker takes what the law leaves")
+                              "vector per DU pair and marker takes what the law leaves; the kappa "
+                              "reported is the fraction of its travel a DU loses while another is "
+                              "at full command, read from the takes")
     form: ClassVar[str] = "law, uniform"
     uniform: bool = True
 
