@@ -603,6 +603,7 @@ class Step:
     form: str | None = None  # the effect's form, where it has several (backlash: play, stick-slip)
     interval: dict = field(default_factory=dict)  # parameter -> [lo, hi] that fit equally well
     meaning: str = ""  # what the effect is, in the form it was named in
+    reading: str = ""  # how the parameter was read from the data, where not from the fit
 
 
 @dataclass
@@ -818,7 +819,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         stages.append(_stage(data, current, res, floor, model_label, prep.phase_labels))
         steps.append(Step(name, params, unc, before, current.rms_mm, evidence, best["explained"],
                           per_du, named=not alt, form=getattr(cls, "form", None),
-                          meaning=cls.meaning,
+                          meaning=cls.meaning, reading=parameter_reading(name, model),
                           interval=({cls.parameter: [float(v) for v in prof.interval]}
                                     if prof.interval else {})))
         say(f"{'kept' if alt else 'named'} {name} {params}: held-out RMS {before:.4f} -> "
@@ -1036,6 +1037,27 @@ def base_report(model: FaceModel) -> dict:
         v = np.array([x for sh in model.take_shifts.values() for x in sh.values()], float)
         out["take_shift_sd"] = round(float(np.std(v)), 4)
     return out
+
+
+READINGS = {
+    "pull-weighted": "in travel along the measured paths where the multi-DU takes hold their DUs "
+                     "at full command; the loss follows the other DU's pull at each marker "
+                     "(skin shared where both DUs pull)",
+    "uniform": "in travel along the measured paths where the multi-DU takes hold their DUs at "
+               "full command; the same loss at every marker (a drive shared before the skin)",
+    "drive": "in the model's drive, by the scalar law refitted on the multi-DU takes (no take "
+             "holds its DUs at full command: a take driving them together to full command and "
+             "holding there reads it in travel)",
+}
+
+
+def parameter_reading(name: str, model: FaceModel) -> str:
+    """How the step's parameter was read where the data, not the fit, give it: the coupling's
+    kappa (:func:`mocap.analysis.model_fit.coupling_kappa`, its weighting in
+    ``model.info["coupling_law"]``); "" otherwise."""
+    if name != "coupling":
+        return ""
+    return READINGS.get(model.info.get("coupling_law", ""), "")
 
 
 def per_du_values(data: ModelData, model: FaceModel, name: str) -> dict[int, float]:

@@ -46,6 +46,7 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
             "meaning": (s.meaning or CATALOGUE[s.effect].meaning),
             **({"form": s.form} if s.form else {}),
             "parameters": {k: _r(v, 6) for k, v in s.parameters.items()},
+            **({"reading": s.reading} if s.reading else {}),
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
             **({"interval": {k: [_r(a, 6), _r(b, 6)] for k, (a, b) in s.interval.items()}}
                if s.interval else {}),
@@ -153,6 +154,7 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
                 + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}] fits alike: "
                    "the band releases at the same command rows)" if k in s.interval else "")
                 for k, v in s.parameters.items()) +
+                f"{' (read ' + s.reading + ')' if s.reading else ''}"
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
             if s.per_du:
                 L += ["", "Per DU, from each DU's own takes: " + ", ".join(

@@ -29,6 +29,7 @@ from mocap.analysis.discrepancy import (
     fit_base,
     heldout,
     n_parameters,
+    parameter_reading,
     prepare,
     run_discrepancy,
 )
@@ -255,6 +256,9 @@ def test_coupling_kappa_is_read_in_travel_whatever_the_models_drive(tmp_path_fac
     kappa = coupling_kappa(data, model, takes)
     assert model.info["coupling_law"] == "uniform"
     assert kappa == pytest.approx(truth["kappa"], rel=0.05), (kappa, truth)
+    # the step reports how: in travel, the same loss at every marker
+    assert "the same loss at every marker" in parameter_reading("coupling", model)
+    assert parameter_reading("lag", model) == ""
 
 
 @pytest.mark.slow  # a 4-DU session and the workflow: minutes
@@ -279,6 +283,8 @@ def test_coupling_law_is_named_when_its_own_value_vanishes_on_all_takes(tmp_path
     kappa = res.steps[0].parameters["kappa"]
     assert kappa == pytest.approx(realised_coupling_kappa(info), rel=0.2), kappa
     assert res.final_heldout_rms_mm <= 1.5 * res.noise_floor_mm
+    step = json.loads((tmp_path / "out" / "discrepancy.json").read_text())["steps"][0]
+    assert "same loss at every marker" in step["reading"]  # the alt law: a uniform loss
 
 
 @pytest.mark.slow  # a 4-DU session and the coupling candidate: a minute and a half
