@@ -851,7 +851,35 @@ def without_coupling(model: FaceModel) -> FaceModel:
                    pairs=(), C=None, C2=None, info={})
 
 
-FULL_RESPONSE = 0.97  # a DU is at full command where the model's response reaches this
+FULL_HOLD_S = 0.5  # a DU is at full command, settled, once its command has been at its highest
+#                    this long (a lag of 0.1 s settles to 1 %; the paper's hold is 3 s)
+
+
+def top_commands(data: ModelData) -> dict[int, float]:
+    """{DU id: the highest command it gets in any of the session's takes}."""
+    top: dict[int, float] = {}
+    for t in data.takes:
+        for d, c in t.rows.groupby("du")["command"].max().items():
+            top[int(d)] = max(top.get(int(d), -np.inf), float(c))
+    return top
+
+
+def full_command(data: ModelData, k: int, top: dict[int, float]) -> np.ndarray:
+    """(S,) bool: the samples of take k where every DU of the take has held its highest command
+    (``top``, :func:`top_commands`) for :data:`FULL_HOLD_S` or more."""
+    from scipy.ndimage import minimum_filter1d
+
+    from mocap.schedules import sample_commands
+
+    t = data.takes[k]
+    step = data.stride / data.fps
+    c = sample_commands(t.rows, list(t.dus), data.samples(k) / data.fps)  # (S, n)
+    high = np.array([top[int(d)] for d in t.dus])
+    at = np.all(c >= high[None] - 1e-9, axis=1).astype(np.uint8)
+    held = int(np.ceil(FULL_HOLD_S / step))
+    # held: at the top for the last ``held`` samples (a trailing window)
+    run = minimum_filter1d(at, held + 1, origin=held // 2, mode="constant")
+    return run.astype(bool)
 
 
 @dataclass(frozen=True)
@@ -872,13 +900,13 @@ class TravelPath:
         return s * self.chord + s * (1.0 - s) * (self.coef[:, 0] + s * self.coef[:, 1])
 
 
-def travel_path(obs: np.ndarray, y: np.ndarray, used: np.ndarray) -> TravelPath | None:
-    """A DU's :class:`TravelPath` from its single-DU takes' displacements ``obs`` (S, M, 3) mm
-    and the model's responses ``y`` (S, M) at them (which samples are at full command, nothing
-    else); None without a sample at full command. The departure from the chord is fitted by
-    linear least squares per marker on the samples with travel in [-0.1, 1.1]."""
+def travel_path(obs: np.ndarray, full: np.ndarray, used: np.ndarray) -> TravelPath | None:
+    """A DU's :class:`TravelPath` from its single-DU takes' displacements ``obs`` (S, M, 3) mm,
+    ``full`` (S,) bool where the DU is at full command, settled (:func:`full_command`); None
+    without a sample at full command. The departure from the chord is fitted by linear least
+    squares per marker on the samples with travel in [-0.1, 1.1]."""
     fin = np.isfinite(obs).all(axis=-1) & used[None]
-    full = fin & (y >= FULL_RESPONSE)
+    full = fin & np.asarray(full, bool)[:, None]
     n_full = full.sum(axis=0)
     if not n_full.any():
         return None
@@ -896,19 +924,20 @@ def travel_path(obs: np.ndarray, y: np.ndarray, used: np.ndarray) -> TravelPath 
     return TravelPath(chord, coef)
 
 
-def travel_paths(data: ModelData, model: FaceModel, takes, dus=None) -> dict[int, TravelPath]:
+def travel_paths(data: ModelData, model: FaceModel, takes, dus=None,
+                 top: dict[int, float] | None = None) -> dict[int, TravelPath]:
     """{DU id: :class:`TravelPath`} of ``dus`` (default: all the model's) from their single-DU
-    takes among ``takes``; full command where ``model``'s response without the take's shift
-    reaches :data:`FULL_RESPONSE`. DUs without such takes are left out."""
+    takes among ``takes`` (at full command: :func:`full_command`). DUs without such takes are
+    left out."""
+    top = top_commands(data) if top is None else top
     out = {}
     for du in (model.du_ids if dus is None else dus):
         single = [k for k in takes if tuple(data.takes[k].dus) == (du,)]
         if not single:
             continue
-        y = [model.response(data.tables(k, model.effects), [du], data.takes[k].trial)[:, 0]
-             for k in single]
         path = travel_path(np.concatenate([data.observed(k) for k in single]),
-                           np.concatenate(y), data.used)
+                           np.concatenate([full_command(data, k, top) for k in single]),
+                           data.used)
         if path is not None:
             out[int(du)] = path
     return out
@@ -917,7 +946,8 @@ def travel_paths(data: ModelData, model: FaceModel, takes, dus=None) -> dict[int
 def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     """The coupling's kappa: the fraction of its travel a DU loses while another DU is at full
     command (at the markers most in the other DU's field for the pull-weighted law), read where
-    the multi-DU takes among ``takes`` hold all their DUs at full command.
+    the multi-DU takes among ``takes`` hold all their DUs at full command (:func:`full_command`:
+    each DU's command at its highest for :data:`FULL_HOLD_S`).
 
     Each DU's paths are measured in its single-DU takes as functions of the travel along the
     chord (:func:`travel_path`); where a take holds its DUs at full command, the law puts each
@@ -932,22 +962,16 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     take holds its DUs at full command: :func:`law_kappa`."""
     plain = without_coupling(model)
     multi = multi_du_takes(data, takes)
-
-    def response(k):  # where the face is at full command: without the take's shift, which
-        #              on a multi-DU take can hold part of the coupling's loss
-        t = data.takes[k]
-        return plain.response(data.tables(k, plain.effects), list(t.dus), t.trial)
-
+    top = top_commands(data)
     holds = []
     for k in multi:
         obs = data.observed(k)
-        ok = ((response(k).min(axis=1) >= FULL_RESPONSE) & np.isfinite(obs).all(axis=-1)
-              & data.used[None])
+        ok = full_command(data, k, top)[:, None] & np.isfinite(obs).all(axis=-1) & data.used[None]
         cnt = ok.sum(axis=0)
         if cnt.any():
             total = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0))
             holds.append((list(data.takes[k].dus), total / np.maximum(cnt, 1)[:, None], cnt))
-    paths = travel_paths(data, plain, takes, sorted({d for dus, _, _ in holds for d in dus}))
+    paths = travel_paths(data, plain, takes, sorted({d for dus, _, _ in holds for d in dus}), top)
     holds = [h for h in holds if all(d in paths for d in h[0])]
     if not holds:
         model.info["coupling_law"] = "drive"

@@ -9,7 +9,7 @@ reading before, now its fallback). Both against the simulator's kappa in travel
 (``truth.json`` ``coupling_travel_kappa``: the law's kappa on straight and bowed paths) and its
 law's kappa. Writes benchmarks/coupling_reading.md and .json.
 
-    python benchmarks/coupling_reading.py [--cases FAMILY:FORM:SEED,...]
+    python benchmarks/coupling_reading.py [--cases FAMILY:FORM:SEED[:EFFECT],...]
 """
 
 from __future__ import annotations
@@ -25,10 +25,11 @@ HERE = Path(__file__).resolve().parent
 CASES = ("boucwen-bow:model:3,boucwen-bow:alt2:8,boucwen-offchord:alt2:2,boucwen-straight:alt2:6,"
          "branchplay-bow:alt2:4,branchplay-offchord:model:1,branchplay-offchord:alt2:2,"
          "branchplay-straight:alt2:8,pi-bow:alt2:2,pi-straight:alt2:8,preisach-bow:alt2:6,"
-         "preisach-offchord:alt2:8,preisach-straight:alt:4,preisach-straight:alt2:4")
+         "preisach-offchord:alt2:8,preisach-straight:alt:4,preisach-straight:alt2:4,"
+         "pi-bow:alt:4:coupling+backlash,preisach-bow:model:1:coupling+backlash")
 
 
-def read_case(family: str, form: str, seed: int) -> dict:
+def read_case(family: str, form: str, seed: int, effect: str = "coupling") -> dict:
     from mocap.analysis.discrepancy import DiscrepancySettings, fit_base, prepare
     from mocap.analysis.face_model import make_effects
     from mocap.analysis.model_effects import BASE
@@ -42,7 +43,7 @@ def read_case(family: str, form: str, seed: int) -> dict:
         root = Path(tmp)
         cfg = preset("small", seed=seed, labeled=True, n_markers=20, labeled_noise_mm=0.03,
                      motion_plans=("A", "C"), face_family=family,
-                     effect=make_effect("coupling", form=form))
+                     effect=make_effect(effect.replace("+", ","), form=form))
         simulate(cfg, root / "s")
         info = json.loads((root / "s" / "truth" / "truth.json").read_text())
         ms = load_measured(root / "s" / "session", work_dir=root / "w")
@@ -59,7 +60,8 @@ def read_case(family: str, form: str, seed: int) -> dict:
     t_drive = time.perf_counter() - t0
     truth = realised_coupling_kappa(info)
     law = effect_parameters(info)["coupling"]["kappa"]
-    return {"family": family, "form": form, "seed": seed, "truth_travel": round(truth, 4),
+    return {"family": family, "effect": effect, "form": form, "seed": seed,
+            "truth_travel": round(truth, 4),
             "truth_law": law, "travel": round(travel, 4), "weighting": model.info["coupling_law"],
             "drive": round(drive, 4), "travel_error": round(travel / truth - 1, 4),
             "drive_error": round(drive / truth - 1, 4),
@@ -77,12 +79,13 @@ def markdown(rows: list[dict], wall: float) -> str:
            "y_n'^2)), the base model fitted on all takes, kappa read in travel where the multi-DU "
            "takes hold their DUs at full command (`coupling_kappa`, the workflow's reading) and "
            "by the scalar law refitted in the model's drive (`law_kappa`, the reading before). "
+           "Full command: every DU's command at its highest for 0.5 s (`full_command`). "
            "Errors against the simulator's kappa in travel (`coupling_travel_kappa`: kappa on "
            "straight and bowed paths).", "",
-           "| family | form | seed | truth in travel (law) | travel reading | weighting | error "
-           "| drive reading | error |", "|---|---|---|---|---|---|---|---|---|"]
+           "| family | hidden | form | seed | truth in travel (law) | travel reading | weighting | "
+           "error | drive reading | error |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        out.append(f"| {r['family']} | {r['form']} | {r['seed']} | {r['truth_travel']:.3f} "
+        out.append(f"| {r['family']} | {r['effect']} | {r['form']} | {r['seed']} | {r['truth_travel']:.3f} "
                    f"({r['truth_law']}) | {r['travel']:.3f} | {r['weighting']} | "
                    f"{pct(r['travel_error'])} | {r['drive']:.3f} | {pct(r['drive_error'])} |")
     te = [abs(r["travel_error"]) for r in rows]
@@ -102,8 +105,8 @@ def main() -> None:
     t0 = time.perf_counter()
     rows = []
     for spec in args.cases.split(","):
-        family, form, seed = spec.split(":")
-        rows.append(read_case(family, form, int(seed)))
+        family, form, seed, *effect = spec.split(":")
+        rows.append(read_case(family, form, int(seed), *effect))
         print(json.dumps(rows[-1]), flush=True)
     (HERE / "coupling_reading.json").write_text(json.dumps(rows, indent=1) + "\n")
     (HERE / "coupling_reading.md").write_text(markdown(rows, time.perf_counter() - t0))

@@ -228,15 +228,15 @@ def test_travel_path_recovers_a_path_from_samples_along_it():
             for v in (a, b))
     s = np.concatenate([rng.uniform(0, 1, (200, M)), np.ones((30, M))])
     d = s[..., None] * c + (s * (1 - s))[..., None] * (a + s[..., None] * b)
-    y = np.where(s >= 1, 1.0, 0.5)  # the model says which samples are at full command
+    full = np.arange(len(s)) >= 200  # the samples at full command
     d[3, 2] = np.nan  # a missing sample is skipped
-    path = travel_path(d, y, np.ones(M, bool))
+    path = travel_path(d, full, np.ones(M, bool))
     np.testing.assert_allclose(path.chord, c, atol=1e-9)
     np.testing.assert_allclose(path.coef[:, 0], a, atol=1e-6)
     np.testing.assert_allclose(path.coef[:, 1], b, atol=1e-6)
     sv = np.full(M, 0.37)
     np.testing.assert_allclose(path.at(sv), 0.37 * c + 0.37 * 0.63 * (a + 0.37 * b), atol=1e-6)
-    assert travel_path(d, np.zeros_like(y), np.ones(M, bool)) is None  # never at full command
+    assert travel_path(d, np.zeros_like(full), np.ones(M, bool)) is None  # never at full command
 
 
 @pytest.mark.parametrize(("family", "form", "seed"), [("branchplay-straight", "alt2", 2),
