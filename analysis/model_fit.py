@@ -867,19 +867,15 @@ def top_commands(data: ModelData) -> dict[int, float]:
 def full_command(data: ModelData, k: int, top: dict[int, float]) -> np.ndarray:
     """(S,) bool: the samples of take k where every DU of the take has held its highest command
     (``top``, :func:`top_commands`) for :data:`FULL_HOLD_S` or more."""
-    from scipy.ndimage import minimum_filter1d
-
+    from mocap.analysis.noise_corrected import still_frames
     from mocap.schedules import sample_commands
 
     t = data.takes[k]
-    step = data.stride / data.fps
+    rate = data.fps / data.stride  # samples per second
     c = sample_commands(t.rows, list(t.dus), data.samples(k) / data.fps)  # (S, n)
-    high = np.array([top[int(d)] for d in t.dus])
-    at = np.all(c >= high[None] - 1e-9, axis=1).astype(np.uint8)
-    held = int(np.ceil(FULL_HOLD_S / step))
-    # held: at the top for the last ``held`` samples (a trailing window)
-    run = minimum_filter1d(at, held + 1, origin=held // 2, mode="constant")
-    return run.astype(bool)
+    return np.all([(c[:, j] >= top[int(d)] - 1e-9)
+                   & still_frames(c[:, j], rate, min_run_s=FULL_HOLD_S, settle_s=FULL_HOLD_S)
+                   for j, d in enumerate(t.dus)], axis=0)
 
 
 @dataclass(frozen=True)
@@ -924,14 +920,11 @@ def travel_path(obs: np.ndarray, full: np.ndarray, used: np.ndarray) -> TravelPa
     return TravelPath(chord, coef)
 
 
-def travel_paths(data: ModelData, model: FaceModel, takes, dus=None,
-                 top: dict[int, float] | None = None) -> dict[int, TravelPath]:
-    """{DU id: :class:`TravelPath`} of ``dus`` (default: all the model's) from their single-DU
-    takes among ``takes`` (at full command: :func:`full_command`). DUs without such takes are
-    left out."""
-    top = top_commands(data) if top is None else top
+def travel_paths(data: ModelData, takes, dus, top: dict[int, float]) -> dict[int, TravelPath]:
+    """{DU id: :class:`TravelPath`} of ``dus`` from their single-DU takes among ``takes`` (at
+    full command: :func:`full_command`). DUs without such takes are left out."""
     out = {}
-    for du in (model.du_ids if dus is None else dus):
+    for du in dus:
         single = [k for k in takes if tuple(data.takes[k].dus) == (du,)]
         if not single:
             continue
@@ -960,7 +953,6 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     only where the two agree (the law refitted in y read 0.204 for 0.35 on a branch-play face
     with straight paths; this reading 0.35, benchmarks/coupling_reading.md). Where no multi-DU
     take holds its DUs at full command: :func:`law_kappa`."""
-    plain = without_coupling(model)
     multi = multi_du_takes(data, takes)
     top = top_commands(data)
     holds = []
@@ -971,7 +963,7 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
         if cnt.any():
             total = np.einsum("sm,smk->mk", ok, np.where(ok[..., None], obs, 0.0))
             holds.append((list(data.takes[k].dus), total / np.maximum(cnt, 1)[:, None], cnt))
-    paths = travel_paths(data, plain, takes, sorted({d for dus, _, _ in holds for d in dus}), top)
+    paths = travel_paths(data, takes, sorted({d for dus, _, _ in holds for d in dus}), top)
     holds = [h for h in holds if all(d in paths for d in h[0])]
     if not holds:
         model.info["coupling_law"] = "drive"
@@ -988,13 +980,19 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
             pred = sum(paths[d].at(1.0 - grid[:, None] * others[i][None])
                        for i, d in enumerate(dus))
             cost += np.einsum("m,gmk->g", cnt, (mean[None] - pred) ** 2)
-        i = int(np.clip(np.argmin(cost), 1, grid.size - 2))
-        a, b, _ = np.polyfit(grid[i - 1:i + 2], cost[i - 1:i + 2], 2)
-        v = float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
-        if cost[i] < best[0]:
-            best = (float(cost[i]), v, law)
+        v = parabola_min(grid, cost)
+        if cost.min() < best[0]:
+            best = (float(cost.min()), v, law)
     model.info["coupling_law"] = best[2]
     return best[1]
+
+
+def parabola_min(grid: np.ndarray, cost: np.ndarray) -> float:
+    """The minimum of ``cost`` over ``grid``, refined by a parabola through the lowest point and
+    its neighbours (kept within them; the grid point where the parabola opens downwards)."""
+    i = int(np.clip(np.argmin(cost), 1, grid.size - 2))
+    a, b, _ = np.polyfit(grid[i - 1:i + 2], cost[i - 1:i + 2], 2)
+    return float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
 
 
 def law_kappa(data: ModelData, model: FaceModel, multi) -> float:
@@ -1028,10 +1026,7 @@ def law_kappa(data: ModelData, model: FaceModel, multi) -> float:
                                          0.0) ** 2)) for y, dus, obs, ok in pre)
 
     for uniform in (False, True):
-        c = np.array([cost(v, uniform) for v in grid])
-        i = int(np.clip(np.argmin(c), 1, grid.size - 2))
-        a, b, _ = np.polyfit(grid[i - 1:i + 2], c[i - 1:i + 2], 2)
-        v = float(np.clip(-b / (2 * a), grid[i - 1], grid[i + 1])) if a > 0 else float(grid[i])
+        v = parabola_min(grid, np.array([cost(v, uniform) for v in grid]))
         cv = cost(v, uniform)
         if cv < best[0]:
             best = (cv, v)

@@ -35,18 +35,14 @@ def read_case(family: str, form: str, seed: int, effect: str = "coupling") -> di
     from mocap.analysis.model_effects import BASE
     from mocap.analysis.model_fit import coupling_kappa, law_kappa, multi_du_takes
     from mocap.discrepancy_input import load_measured
-    from mocap.simulate import preset, simulate
-    from mocap.simulate.effects import make_effect
     from mocap.simulate.truth import effect_parameters, realised_coupling_kappa
 
+    from cross_family_sweep import _simulate  # the sweep's session of a case
+
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        cfg = preset("small", seed=seed, labeled=True, n_markers=20, labeled_noise_mm=0.03,
-                     motion_plans=("A", "C"), face_family=family,
-                     effect=make_effect(effect.replace("+", ","), form=form))
-        simulate(cfg, root / "s")
-        info = json.loads((root / "s" / "truth" / "truth.json").read_text())
-        ms = load_measured(root / "s" / "session", work_dir=root / "w")
+        d = _simulate(family, effect.replace("+", ","), seed, Path(tmp), form=form)
+        info = json.loads((d / "truth" / "truth.json").read_text())
+        ms = load_measured(d / "session", work_dir=Path(tmp) / "w")
         prep = prepare(ms.session.fps, ms.marker_names, ms.rest_mm, ms.takes, ms.rest_X,
                        DiscrepancySettings())
     data = prep.data

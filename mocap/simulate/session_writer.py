@@ -52,7 +52,7 @@ from mocap.simulate.families import family_stream, resolve_family
 from mocap.simulate.motion import true_take
 from mocap.simulate.rig import GROUND_MARKERS_MM, make_rig, wand_motion
 from mocap.simulate.smile import SmileTiming, nominal_branches, smile_commands
-from mocap.simulate.truth import effect_parameters
+from mocap.simulate.truth import effect_parts
 
 RESPONSE_TAIL_S = 0.05  # one more step at 0 after the trapezoid's last row
 BATTERY_TAIL_S = 0.5
@@ -319,15 +319,13 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         "ground": bool(cfg.ground),
         "takes": take_meta,
     }
-    coupling = effect_parameters(info).get("coupling")
+    coupling = effect_parts(info).get("coupling")
     if coupling:
         # the coupling's loss as the takes show it: in travel along each marker's path, for
         # the groups of DUs the session drives together
-        part = next(p for p in info["effect"].get("effects", [info["effect"]])
-                    if p["name"] == "coupling")
         groups = sorted({tuple(t["dus"]) for t in take_meta if len(t["dus"]) > 1})
         info["coupling_travel_kappa"] = face.travel_kappa(
-            coupling["kappa"], pull_weighted=part.get("form", "model") == "model",
+            coupling["parameters"]["kappa"], pull_weighted=coupling.get("form", "model") == "model",
             groups=groups or None)
     write_text(truth / "truth.json", json.dumps(info, indent=2))
     write_text(sess / "session.toml", manifest_text(cfg, rig, takes, files, cmd_files))

@@ -8,11 +8,16 @@ from __future__ import annotations
 import numpy as np
 
 
+def effect_parts(info: dict) -> dict[str, dict]:
+    """{effect name: its description (parameters, form, ...)} of the hidden effect(s) in
+    ``info`` ({} for none)."""
+    eff = info["effect"]
+    return {p["name"]: p for p in eff.get("effects", [eff]) if p["name"] != "none"}
+
+
 def effect_parameters(info: dict) -> dict[str, dict[str, float]]:
     """{effect name: {parameter: value}} of the hidden effect(s) in ``info`` ({} for none)."""
-    eff = info["effect"]
-    parts = eff.get("effects", [eff])
-    return {p["name"]: dict(p["parameters"]) for p in parts if p["name"] != "none"}
+    return {name: dict(p["parameters"]) for name, p in effect_parts(info).items()}
 
 
 def realised_bias_drift(info: dict, du: int) -> float:
