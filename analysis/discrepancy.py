@@ -24,7 +24,12 @@ name the missing effect, add it, show the gap shrink.
    (:data:`mocap.analysis.model_effects.FORMS`: backlash as a play or a stick-slip dead band) is
    fitted in each and keeps the one that gains the most on its own null in held-out takes.
 6. Add it and repeat (forward stepwise; a named effect's parameter is re-identified on all
-   takes, with its uncertainty from the profile). Drift last, from the final model: the trend
+   takes, with its uncertainty from the profile). Then a backlash the base's hysteresis
+   absorbed (no held-out gain: a play before the skin's plays is one operator with wider plays):
+   the widest play the takes allow before the final model, the edge of its profile
+   (:func:`dead_band_step`, :mod:`mocap.analysis.dead_band`), named when it is at least half a
+   command step of the takes and the model with it predicts the held-out takes no worse. Drift
+   last, from the final model: the trend
    over trials of the takes' bias shifts (:func:`drift_step`), named when it stands out of the
    takes' random scatter, reported as an alternative when it only half does.
 7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
@@ -40,6 +45,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from mocap.analysis.dead_band import dead_band_edge, walk
 from mocap.analysis.face_model import FaceModel, make_effects
 from mocap.analysis.model_effects import (
     BASE,
@@ -824,6 +830,22 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                                     if prof.interval else {})))
         say(f"{'kept' if alt else 'named'} {name} {params}: held-out RMS {before:.4f} -> "
             f"{current.rms_mm:.4f} mm")
+    # a backlash the base's density absorbed: the edge of a forced play's profile
+    if "backlash" in settings.candidates and "backlash" not in untestable:
+        step, cv, alt, model, item = dead_band_step(data, stage_models[-1], current, floor, say)
+        if item is not None and step is None:  # the reading beside the last round's evidence
+            evidence = [*evidence, item]
+        if step is not None:
+            alternatives.append(alt)
+            named.append("backlash")
+            steps.append(step)
+            current = cv
+            s, n, res = heldout(data, current.models)
+            residual_sets.append(res)
+            stage_models.append(model)
+            model_label = "+".join(settings.base + tuple(s_.effect for s_ in steps))
+            stages.append(_stage(data, current, res, floor, model_label, prep.phase_labels))
+            say(f"named backlash {step.parameters}: the edge of a forced play's profile")
     # drift last: the trend of the takes' bias shifts, read from the final model (an effect still
     # missing, such as a lag, would bias the shifts)
     last = stage_models[-1]
@@ -931,6 +953,92 @@ def dead_band_alternative(halfwidth: float, model: FaceModel, form: str = "play"
                        "own hysteresis (a branch play, relays that all need a push to switch) "
                        "fit alike; a take that moves the actuator without the skin (or a "
                        "position sensor on it) would tell them apart")}
+
+
+DEAD_BAND_READING = ("the widest play before the skin's hysteresis that the takes allow: a play "
+                     "forced wider than the face's dead band stops motion the takes show, and the "
+                     "fit degrades at once (the edge of its profile); narrower, the skin's play "
+                     "density holds the rest of the band")
+
+
+def dead_band_step(data: ModelData, model: FaceModel, current: CVFit, floor: float, say):
+    """A backlash the base's hysteresis absorbed, read as the edge of a forced play's profile
+    (:mod:`mocap.analysis.dead_band`) on all takes, before ``model`` (the final model, fitted on
+    all takes; ``current`` its two fold fits). Named when the edge is at least
+    ``Backlash.min_plausible`` and half the takes' command step (a band narrower than one step
+    still moves the response at the first step after a reversal), and the model with the play
+    at the edge, walked up to it on each fold from the fold's model, predicts the held-out fold
+    no worse than the same walk at 0 (the fold fits' own polish is not read as the effect).
+    Returns (Step or None, its CVFit, the alternative, the model with the play, the evidence
+    item or None where the step did not apply)."""
+    cls = CATALOGUE["backlash"]
+    if not model.hysteresis or any(type(e).name == "backlash" for e in model.effects):
+        return None, None, None, None, None
+    t0 = time.perf_counter()
+    all_takes = list(range(len(data.takes)))
+    edge = dead_band_edge(data, model, all_takes)
+    step_c = data.command_step
+    threshold = max(cls.min_plausible, 0.5 * step_c)
+    item = {"effect": "backlash", "testable": True, "dead_band_edge": True,
+            "halfwidth": round(edge.halfwidth, 4) if edge.bounded else None,
+            "interval": [round(v, 4) for v in edge.interval] if edge.bounded else None,
+            "threshold": round(threshold, 4), "command_step": round(step_c, 4),
+            "profile": [[round(h, 3), round(v, 4)] for h, v in edge.profile],
+            "heldout_rms_mm": current.rms_mm, "score": 0.0, "explained": 0.0}
+    say(f"  backlash edge {edge.halfwidth:.2f} command units (threshold {threshold:.2f}; "
+        f"{len(edge.profile)} forced plays, {time.perf_counter() - t0:.1f} s)")
+    if not edge.bounded or edge.halfwidth < threshold:
+        item["reason"] = ("the takes do not bound a forced play" if not edge.bounded else
+                          f"every DU moves within {2 * edge.halfwidth:.1f} command units of a "
+                          f"reversal: no dead band of a command step ({step_c:.3g})")
+        return None, None, None, None, item
+    others = tuple(e for e in model.effects if type(e).name != "backlash")
+    models, nulls = [], []
+    for f in (0, 1):
+        tk = fold_takes(data, f)
+        models.append(walk(data, others, tk, current.models[f], edge.halfwidth))
+        nulls.append(walk(data, others, tk, current.models[f], 0.0))
+    s, n, res = heldout(data, models)
+    s0, n0, res0 = heldout(data, nulls)
+    cv = CVFit(models, s, n, [edge.halfwidth] * 2, cls, local_gain(res0, res, data.used, floor),
+               [list(edge.interval)] * 2, residuals=res, null=CVFit(nulls, s0, n0, residuals=res0))
+    item.update(heldout_rms_mm=cv.rms_mm, null_heldout_rms_mm=cv.null.rms_mm,
+                explained=float((s0 - s) / s0))
+    if s > s0 * (1.0 + EDGE_HELDOUT_SLACK):
+        item["reason"] = (f"the model with a play of {edge.halfwidth:.2f} predicts the held-out "
+                          f"takes worse ({cv.rms_mm:.4f} mm against {cv.null.rms_mm:.4f} mm)")
+        return None, None, None, None, item
+    h = edge.halfwidth
+    lo, hi = edge.interval
+    # each DU's own band: the onset on its single-DU takes (a robot's actuators may differ),
+    # where they determine it to half a command step (on the PI face with a band of 12, DUs 1
+    # and 12 read 12.75 in 10.4-15.05 and 14.0 in 13.55-14.45; DU 4, whose wide loops let the
+    # density give back much of a wider band, rose softly from 12 to 29 and read 6.25 in 0.2-12)
+    per_du = {}
+    for du in data.du_ids:
+        own = [k for k, t in enumerate(data.takes) if t.dus == (du,)]
+        if own:
+            e_du = dead_band_edge(data, model, own)
+            if e_du.bounded and e_du.interval[1] - e_du.interval[0] <= 0.5 * step_c:
+                per_du[int(du)] = e_du.halfwidth
+    step = Step("backlash", {cls.parameter: h}, {cls.parameter: 0.5 * (hi - lo)},
+                current.rms_mm, cv.rms_mm, [item], 0.0, per_du, form=cls.form,
+                meaning=cls.meaning, reading=DEAD_BAND_READING,
+                interval={cls.parameter: [float(lo), float(hi)]})
+    alt = dead_band_alternative(h, edge.model, cls.form)
+    alt["reason"] = (f"every DU holds for about {2 * h:.1f} command units after its reversals "
+                     f"(a play forced wider degrades the fit at once; profile in the evidence): "
+                     "a dead band in the actuators (named: backlash) or in the skin's own "
+                     "hysteresis (relays that all need a push of that much to switch) fit alike, "
+                     "and the base held it in its play density; the step names the actuator "
+                     "because an elastic skin moves at once after a reversal. A take that moves "
+                     "the actuator without the skin (or a position sensor on it) would tell them "
+                     "apart")
+    return step, cv, alt, edge.model, item
+
+
+EDGE_HELDOUT_SLACK = 0.01  # the held-out SSE with the play may exceed its null's by this fraction (at
+#                            the edge the training fit has begun to lose: 0.5 % per command unit)
 
 
 def shift_trend(points: list[tuple[int, int, float]]) -> dict:

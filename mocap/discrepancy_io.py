@@ -193,6 +193,11 @@ def _evidence_row(e: dict) -> str:
         return f"| {e['effect']} | | | | | not testable: {e.get('reason', '')} |"
     if e.get("screened_out"):
         return f"| {e['effect']} | | | | | no held-out gain on the first fold |"
+    if e.get("dead_band_edge"):  # backlash, read as the onset of a forced play's profile
+        hw = e.get("halfwidth")
+        onset = "no onset" if hw is None else f"onset {hw:.3g} (threshold {e['threshold']:.3g})"
+        return (f"| {e['effect']} | {e['heldout_rms_mm']:.4f} | | | {onset} | dead-band step"
+                f"{': ' + e['reason'] if e.get('reason') else ''} |")
     if "shifts" in e:  # drift, decided from the trend of the takes' bias shifts
         return (f"| {e['effect']} | | | | slope {e.get('slope', 0):.3g} per trial | "
                 f"{abs(e.get('t', 0)):.1f} standard errors of the takes' scatter |")
