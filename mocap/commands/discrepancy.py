@@ -15,9 +15,11 @@ localise where the residuals exceed the measurement's own noise (per take, DU, m
 of the command), try every candidate effect (lag, deadtime, backlash, coupling, drift,
 saturation; hysteresis and curvature too from a smaller base), name the one that explains the gap on
 held-out takes (BIC margin 10) with its parameter and uncertainty, add it and repeat until nothing
-significant is left. Says which effects the takes cannot test (e.g. coupling without multi-DU
-takes). Writes OUT/discrepancy.json, discrepancy.md, figures/ and discrepancy.rrd (Rerun; open
-it with 'mocap replay OUT').
+significant is left. A backlash the hysteresis density absorbed (no held-out gain) is read as
+the widest actuator dead band the takes allow, the onset of a forced play's profile, and named
+with the alternative that the skin holds the band. Says which effects the takes cannot test
+(e.g. coupling without multi-DU takes). Writes OUT/discrepancy.json, discrepancy.md, figures/
+and discrepancy.rrd (Rerun; open it with 'mocap replay OUT').
 
 A raw (2D) session is reconstructed first (into OUT/reconstruction); a labeled session or a
 'mocap run' output folder is read directly.
