@@ -120,8 +120,10 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
               (f", a bias shift per take and DU (SD {b['take_shift_sd']:.2f} command units)"
                if "take_shift_sd" in b else "") + "."]
     for alt in res.alternatives:
-        L += ["", f"Two explanations fit equally well ({' or '.join(alt['effects'])}), neither "
-              f"named: {alt['reason']}."]
+        first = alt["effects"][0]
+        which = (f"{first} named, the other beside it" if first in res.named else "neither named")
+        L += ["", f"Two explanations fit equally well ({' or '.join(alt['effects'])}), {which}: "
+              f"{alt['reason']}."]
     if res.untestable:
         L += ["", "Effects these takes cannot tell apart (not named, whatever the residuals):"]
         L += [f"- {k}: not testable, {v}" for k, v in res.untestable.items()]
@@ -149,10 +151,13 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
             unit = CATALOGUE[s.effect].unit
             head = ("Named" if s.named else
                     "Kept in the model, not named (an alternative explains it as well)")
+            edge = bool(s.evidence and s.evidence[0].get("dead_band_edge"))
+            why = ("the onset read with a rise of another shape" if edge else
+                   "fits alike: the band releases at the same command rows")
             L += ["", f"**{head}: {s.effect}** ({(s.meaning or CATALOGUE[s.effect].meaning)}): " + ", ".join(
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
-                + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}] fits alike: "
-                   "the band releases at the same command rows)" if k in s.interval else "")
+                + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}]: {why})"
+                   if k in s.interval else "")
                 for k, v in s.parameters.items()) +
                 f"{' (read ' + s.reading + ')' if s.reading else ''}"
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
@@ -184,7 +189,10 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
           "parameter is plausible in both folds and on all takes, and the takes can test it. A "
           "candidate with several forms (backlash: a play, a stick-slip dead band; coupling: pair "
           "vectors, a pull-weighted or uniform law with pair vectors) is fitted in each and keeps "
-          "the form with the larger held-out gain on its own null."]
+          "the form with the larger held-out gain on its own null. After the search, a backlash "
+          "the hysteresis density absorbed is read as the onset of the profile of a play forced "
+          "before the final model (the widest band the takes allow), named when it is at least "
+          "half a command step and the held-out takes are predicted no worse with it."]
     return "\n".join(L) + "\n"
 
 
