@@ -976,17 +976,24 @@ def dead_band_step(data: ModelData, model: FaceModel, current: CVFit, floor: flo
         return None, None, None, None, None
     t0 = time.perf_counter()
     all_takes = list(range(len(data.takes)))
-    edge = dead_band_edge(data, model, all_takes)
     step_c = data.command_step
     threshold = max(cls.min_plausible, 0.5 * step_c)
+    edge = dead_band_edge(data, model, all_takes, screen=threshold)
     item = {"effect": "backlash", "testable": True, "dead_band_edge": True,
             "halfwidth": round(edge.halfwidth, 4) if edge.bounded else None,
             "interval": [round(v, 4) for v in edge.interval] if edge.bounded else None,
             "threshold": round(threshold, 4), "command_step": round(step_c, 4),
             "profile": [[round(h, 3), round(v, 4)] for h, v in edge.profile],
             "heldout_rms_mm": current.rms_mm, "score": 0.0, "explained": 0.0}
-    say(f"  backlash edge {edge.halfwidth:.2f} command units (threshold {threshold:.2f}; "
-        f"{len(edge.profile)} forced plays, {time.perf_counter() - t0:.1f} s)")
+    say(f"  backlash edge {'screened out' if edge.screened else f'{edge.halfwidth:.2f}'} "
+        f"(threshold {threshold:.2f} command units; {len(edge.profile)} forced plays, "
+        f"{time.perf_counter() - t0:.1f} s)")
+    if edge.screened:
+        (_, s0), (_, s1) = edge.profile
+        item["reason"] = (f"a play of {threshold:.3g} command units costs {100 * (s1 / s0 - 1):.0f} % "
+                          "of the fit: some DU moves within a command step of a reversal, no "
+                          f"dead band of a command step ({step_c:.3g})")
+        return None, None, None, None, item
     if not edge.bounded or edge.halfwidth < threshold:
         item["reason"] = ("the takes do not bound a forced play" if not edge.bounded else
                           f"every DU moves within {2 * edge.halfwidth:.1f} command units of a "

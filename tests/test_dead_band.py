@@ -203,11 +203,17 @@ def test_a_backlash_the_base_absorbed_is_named_at_the_edge(tmp_path_factory):
 
 
 def test_no_backlash_is_read_where_the_skin_moves_at_once(tmp_path_factory):
-    """The same face without a band: a forced play degrades the fit within a few command units
-    of 0, below half a command step; nothing named, the reason said."""
+    """The same face without a band: screened out (a play of half a command step costing the fit
+    more than 10 %) or, where the rise is too gentle for the screen, the whole profile's onset
+    and its interval below half a command step."""
     from mocap.analysis.dead_band import dead_band_edge
 
     _, prep, whole = _edge_case(tmp_path_factory.mktemp("edge_none"), None)
-    edge = dead_band_edge(prep.data, whole, list(range(len(prep.data.takes))))
-    assert edge.bounded
-    assert edge.halfwidth < 0.5 * prep.data.command_step, edge.profile
+    takes = list(range(len(prep.data.takes)))
+    half = 0.5 * prep.data.command_step
+    edge = dead_band_edge(prep.data, whole, takes, screen=half)  # the step's path
+    # on this 2-DU session a play of half a step costs the fit 1.4 %, under the screen's 10 %
+    # (4-DU sessions: 20-54 %): the whole profile runs, and its onset is near 0
+    assert edge.screened or (edge.bounded and edge.halfwidth < half), edge.profile
+    if not edge.screened:
+        assert edge.interval[1] < half
