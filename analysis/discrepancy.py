@@ -840,7 +840,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             named.append("backlash")
             steps.append(step)
             current = cv
-            s, n, res = heldout(data, current.models)
+            res = cv.residuals  # the held-out residuals the step scored
             residual_sets.append(res)
             stage_models.append(model)
             model_label = "+".join(settings.base + tuple(s_.effect for s_ in steps))
@@ -968,7 +968,8 @@ def dead_band_step(data: ModelData, model: FaceModel, current: CVFit, floor: flo
     ``Backlash.min_plausible`` and half the takes' command step (a band narrower than one step
     still moves the response at the first step after a reversal), and the model with the play
     at the edge, walked up to it on each fold from the fold's model, predicts the held-out fold
-    no worse than the same walk at 0 (the fold fits' own polish is not read as the effect).
+    no worse (within :data:`EDGE_HELDOUT_SLACK`) than the fold's model polished at 0 (its final
+    polish only: the walk's extra iterations at the narrower plays are not repeated at 0).
     Returns (Step or None, its CVFit, the alternative, the model with the play, the evidence
     item or None where the step did not apply)."""
     cls = CATALOGUE["backlash"]
