@@ -18,7 +18,8 @@ name the missing effect, add it, show the gap shrink.
 5. Name the best candidate when its score beats its null by ``margin`` (10), it
    explains at least ``min_explained`` (20 %) of the held-out excess over the noise floor and
    removes at least ``min_rms_gain`` (3 %) of a noise floor from the held-out RMS (or, with
-   ``local``, on by default, does as much where it acts, :func:`local_gain`), its
+   ``local``, on by default, does as much where it acts, :func:`local_gain`; a stick-slip dead
+   band where it holds, :func:`hold_gain`), its
    parameter is physically plausible in both folds, and the
    session's takes can test it; else "no missing effect found". A candidate with several forms
    (:data:`mocap.analysis.model_effects.FORMS`: backlash as a play or a stick-slip dead band) is
@@ -46,13 +47,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from mocap.analysis.dead_band import dead_band_edge, walk
-from mocap.analysis.face_model import FaceModel, make_effects
+from mocap.analysis.face_model import OVERSAMPLE, FaceModel, actuator_series, make_effects
 from mocap.analysis.model_effects import (
     BASE,
     CANDIDATES,
     CATALOGUE,
     FORMS,
     ScheduleSummary,
+    StickSlipBacklash,
     command_moves,
     summarize_schedules,
 )
@@ -96,7 +98,8 @@ class DiscrepancySettings:
         way to pass the explained and RMS-gain tests: where the candidate acts (the held-out
         residual vectors it moves by more than half the noise floor, at least ``local_min_n`` of
         them), it removes at least ``local_explained`` of the excess over the noise floor and
-        ``local_gain`` x the noise floor from the RMS. An effect that acts in a few places (a dead
+        ``local_gain`` x the noise floor from the RMS (a stick-slip dead band: on the rows where
+        it holds a DU's actuator, :func:`hold_gain`). An effect that acts in a few places (a dead
         band at reversals) is plain there and lost in the session's RMS. Scored against the
         base, a candidate's extra polish of the curves was local too (on a Preisach face with
         nothing hidden a lag of 0 s explained 69-77 % of the excess on the 326-717 residual
@@ -469,7 +472,8 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
     with the larger held-out gain on its null kept: a form's training fit can win by fitting
     noise, a play of 2 units read on one fold lowered its training SSE below the stick-slip
     band's and doubled its held-out excess).  ``floor`` : the noise floor (mm);
-    given, the fit's gain where it acts is measured too (:func:`local_gain`)."""
+    given, the fit's gain where it acts is measured too (:func:`local_gain`; a stick-slip dead
+    band's where it holds, :func:`hold_gain`)."""
     forms = (cls,) if cls is not None else FORMS.get(name, (CATALOGUE[name],))
     best = None
     for form in forms:
@@ -494,11 +498,16 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
     if best is None:
         return None
     _, s, n, res, form, models, values, intervals, null = best
-    local = local_gain(null.residuals, res, data.used, floor) if floor is not None else {}
+    local = {}
+    if floor is not None:
+        local = (hold_gain(data, null.residuals, res, models, floor)
+                 if issubclass(form, StickSlipBacklash)
+                 else local_gain(null.residuals, res, data.used, floor))
     return CVFit(models, s, n, values, form, local, intervals, null=null)
 
 
 LOCAL_CHANGE = 0.5  # x noise floor: a candidate acts where it moves the prediction this much
+HOLD_CHANGE = 1.0  # command units: a dead band holds where it moves the actuator this much
 
 
 NO_LOCAL = {"n": 0, "explained": 0.0, "rms_gain_vs_noise": 0.0}
@@ -526,6 +535,41 @@ def local_gain(before: list[np.ndarray], after: list[np.ndarray], used: np.ndarr
     excess = mse0 - floor ** 2
     return {"n": n, "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0,
             "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor)}
+
+
+def hold_gain(data: ModelData, before: list[np.ndarray], after: list[np.ndarray],
+              models: list[FaceModel], floor: float, change: float = HOLD_CHANGE) -> dict:
+    """A stick-slip dead band's gain where it holds: :func:`local_gain`'s numbers over the
+    held-out residual vectors (per take (S, M, 3), mm; ``before`` its null's, ``after`` the
+    band's) of the samples where the band holds a DU's actuator (it differs from the actuator
+    without the band by more than ``change`` command units, as the fold model that predicts the
+    take has it) and of the markers that DU moves. The band acts there and nowhere else, which
+    the commands and its width say before any fit; the vectors the fit moved (:func:`local_gain`)
+    also count the density's refit everywhere, and on a Bouc-Wen skin, whose own misfit
+    gathers at the same reversals, the band explained 18 % of theirs and 52 % of the held
+    rows' (a 12-unit band on a 4-DU session, benchmarks/cross_family_sweep_session14.md)."""
+    a0 = a1 = 0.0
+    n = 0
+    for k, t in enumerate(data.takes):
+        m = models[1 - t.fold]
+        without = tuple(e for e in m.effects if type(e).name != "backlash")
+        rows = slice(None, None, OVERSAMPLE * data.stride)
+        a = actuator_series(t.rows, t.dus, t.n_frames, data.fps, m.effects)[rows]
+        a_0 = actuator_series(t.rows, t.dus, t.n_frames, data.fps, without)[rows]
+        held = np.abs(a - a_0) > change  # (S, n_dus)
+        moves = data.active[[data.du_ids.index(d) for d in t.dus]]  # (n_dus, M)
+        sel = (held[:, :, None] & moves[None]).any(axis=1) & data.used[None]  # (S, M)
+        u0, u1 = before[k][sel], after[k][sel]  # (V, 3)
+        ok = np.isfinite(u0).all(axis=-1) & np.isfinite(u1).all(axis=-1)
+        a0 += float(np.sum(u0[ok] ** 2))
+        a1 += float(np.sum(u1[ok] ** 2))
+        n += int(ok.sum())
+    if n == 0:
+        return {**NO_LOCAL, "where": "held"}
+    mse0, mse1 = a0 / n, a1 / n
+    excess = mse0 - floor ** 2
+    return {"n": n, "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0,
+            "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor), "where": "held"}
 
 
 _WORKER_DATA: ModelData | None = None

@@ -175,7 +175,8 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
     st = meta.get("settings") or asdict(DiscrepancySettings())
     where = (f"or where it acts (on at least {st['local_min_n']} held-out residual vectors it moves "
              f"by more than half the noise floor) explains {100 * st['local_explained']:.0f} % of "
-             f"their excess and removes {st['local_gain']:g} of a noise floor"
+             f"their excess and removes {st['local_gain']:g} of a noise floor; for a stick-slip "
+             "dead band, on the rows where it holds a DU's actuator, the markers that DU moves"
              if st["local"] else
              "the gain where it acts, on the held-out residuals it moves by more than half the "
              "noise floor, is reported beside but not used: a dead band acts at reversals only")
@@ -215,7 +216,8 @@ def _evidence_row(e: dict) -> str:
         notes.append(f"form: {e['form']}")
     loc = e.get("local") or {}
     if loc.get("n"):
-        notes.append(f"where it acts ({loc['n']} residuals): explains {loc['explained']:.2f}")
+        at = "where it holds" if loc.get("where") == "held" else "where it acts"
+        notes.append(f"{at} ({loc['n']} residuals): explains {loc['explained']:.2f}")
     note = "; ".join(notes)
     return (f"| {e['effect']} | {e['heldout_rms_mm']:.4f} | {e['score']:.1f} | "
             f"{e['explained']:.2f} | {fv} | {note} |")
