@@ -115,6 +115,35 @@ def test_backlash_passes_the_naming_test(dead_band_face):
     assert not passes(item, DiscrepancySettings(local=False)), item  # the session-wide tests fail
 
 
+def test_the_band_is_read_where_the_simulators_band_holds(dead_band_face):
+    """hold_gain reads the held-out vectors of the samples where the band holds a DU, on the
+    markers that DU moves: the same samples as where the simulator's own stick-slip equation
+    (mocap.simulate.effects_alt, a second implementation) moves the actuator off the command,
+    with each take's half-width the one of the fold model that predicts it."""
+    from mocap.analysis.discrepancy import hold_gain
+    from mocap.analysis.face_model import OVERSAMPLE
+    from mocap.schedules import sample_commands
+
+    _, prep, _, cand = dead_band_face
+    data = prep.data
+    after = heldout(data, cand.models)[2]
+    loc = hold_gain(data, cand.null.residuals, after, cand.models, prep.noise_floor_mm)
+    expected = 0
+    for k, t in enumerate(data.takes):
+        b = cand.models[1 - t.fold].effect("backlash").value
+        fine = np.arange(t.n_frames * OVERSAMPLE) / (data.fps * OVERSAMPLE)
+        c = sample_commands(t.rows, list(t.dus), fine)
+        held = (effects_alt.stick_slip(c, b) != c)[:: OVERSAMPLE * data.stride]  # (S, n_dus)
+        moves = data.active[[data.du_ids.index(d) for d in t.dus]]
+        sel = (held[:, :, None] & moves[None]).any(axis=1) & data.used[None]
+        ok = (np.isfinite(cand.null.residuals[k]).all(axis=-1)
+              & np.isfinite(after[k]).all(axis=-1))
+        expected += int((sel & ok).sum())
+    assert expected > 0 and loc["n"] == expected, (loc, expected)
+    same = hold_gain(data, after, after, cand.models, prep.noise_floor_mm)
+    assert same["n"] == expected and same["explained"] == 0.0 and same["rms_gain_vs_noise"] == 0.0
+
+
 def test_a_hold_is_not_read_where_a_lag_moves_the_rows_after_a_reversal(tmp_path_factory):
     """Where a stick-slip band is read (the rows after each reversal before it releases) a lag
     also leaves residuals: on a 2-DU Bouc-Wen face with a hidden second-order lag and no band,
