@@ -54,7 +54,6 @@ from mocap.analysis.model_effects import (
     CATALOGUE,
     FORMS,
     ScheduleSummary,
-    StickSlipBacklash,
     command_moves,
     summarize_schedules,
 )
@@ -500,8 +499,7 @@ def cv_candidate(data: ModelData, current: CVFit, name: str, cls=None,
     _, s, n, res, form, models, values, intervals, null = best
     local = {}
     if floor is not None:
-        local = (hold_gain(data, null.residuals, res, models, floor)
-                 if issubclass(form, StickSlipBacklash)
+        local = (hold_gain(data, null.residuals, res, models, floor) if form.acts_where_held
                  else local_gain(null.residuals, res, data.used, floor))
     return CVFit(models, s, n, values, form, local, intervals, null=null)
 
@@ -520,21 +518,9 @@ def local_gain(before: list[np.ndarray], after: list[np.ndarray], used: np.ndarr
     of their excess over the noise floor it removes (``explained``) and the RMS it removes over
     the noise floor (``rms_gain_vs_noise``). An effect that acts in a few places (a dead band at
     reversals) is plain there and invisible in the whole session's RMS."""
-    a0 = a1 = 0.0
-    n = 0
-    for e0, e1 in zip(before, after):
-        u0, u1 = e0[:, used], e1[:, used]
-        moved = np.linalg.norm(u1 - u0, axis=-1)
-        m = np.isfinite(moved) & (moved > change * floor)
-        a0 += float(np.sum(u0[m] ** 2))
-        a1 += float(np.sum(u1[m] ** 2))
-        n += int(m.sum())
-    if n == 0:
-        return dict(NO_LOCAL)
-    mse0, mse1 = a0 / n, a1 / n
-    excess = mse0 - floor ** 2
-    return {"n": n, "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0,
-            "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor)}
+    masks = [(np.linalg.norm(e1 - e0, axis=-1) > change * floor) & used[None]
+             for e0, e1 in zip(before, after)]
+    return _gain_over(before, after, masks, floor)
 
 
 def hold_gain(data: ModelData, before: list[np.ndarray], after: list[np.ndarray],
@@ -543,33 +529,42 @@ def hold_gain(data: ModelData, before: list[np.ndarray], after: list[np.ndarray]
     held-out residual vectors (per take (S, M, 3), mm; ``before`` its null's, ``after`` the
     band's) of the samples where the band holds a DU's actuator (it differs from the actuator
     without the band by more than ``change`` command units, as the fold model that predicts the
-    take has it) and of the markers that DU moves. The band acts there and nowhere else, which
-    the commands and its width say before any fit; the vectors the fit moved (:func:`local_gain`)
-    also count the density's refit everywhere, and on a Bouc-Wen skin, whose own misfit
-    gathers at the same reversals, the band explained 18 % of theirs and 52 % of the held
-    rows' (a 12-unit band on a 4-DU session, benchmarks/cross_family_sweep_session14.md)."""
-    a0 = a1 = 0.0
-    n = 0
-    for k, t in enumerate(data.takes):
+    take has it) and of the markers that DU moves; ``"where": "held"``. The band acts there and
+    nowhere else, which the commands and its width say before any fit; the vectors the fit
+    moved (:func:`local_gain`) also count the density's refit everywhere, and on a Bouc-Wen
+    skin, whose own misfit gathers at the same reversals, a 12-unit band explained 18 % of
+    theirs and 58 % of the held rows' (a 4-DU session; docs/discrepancy.md, "Where it acts")."""
+    masks = []
+    every = slice(None, None, OVERSAMPLE * data.stride)  # the fine grid at the samples
+    for t in data.takes:
         m = models[1 - t.fold]
         without = tuple(e for e in m.effects if type(e).name != "backlash")
-        rows = slice(None, None, OVERSAMPLE * data.stride)
-        a = actuator_series(t.rows, t.dus, t.n_frames, data.fps, m.effects)[rows]
-        a_0 = actuator_series(t.rows, t.dus, t.n_frames, data.fps, without)[rows]
+        a = actuator_series(t.rows, t.dus, t.n_frames, data.fps, m.effects)[every]
+        a_0 = actuator_series(t.rows, t.dus, t.n_frames, data.fps, without)[every]
         held = np.abs(a - a_0) > change  # (S, n_dus)
         moves = data.active[[data.du_ids.index(d) for d in t.dus]]  # (n_dus, M)
-        sel = (held[:, :, None] & moves[None]).any(axis=1) & data.used[None]  # (S, M)
-        u0, u1 = before[k][sel], after[k][sel]  # (V, 3)
+        masks.append((held[:, :, None] & moves[None]).any(axis=1) & data.used[None])  # (S, M)
+    return {**_gain_over(before, after, masks, floor), "where": "held"}
+
+
+def _gain_over(before: list[np.ndarray], after: list[np.ndarray], masks: list[np.ndarray],
+               floor: float) -> dict:
+    """n, explained and rms_gain_vs_noise (:func:`local_gain`) over the residual vectors
+    selected by ``masks`` (per take (S, M) bool) where both residuals are finite."""
+    a0 = a1 = 0.0
+    n = 0
+    for e0, e1, sel in zip(before, after, masks):
+        u0, u1 = e0[sel], e1[sel]  # (V, 3)
         ok = np.isfinite(u0).all(axis=-1) & np.isfinite(u1).all(axis=-1)
         a0 += float(np.sum(u0[ok] ** 2))
         a1 += float(np.sum(u1[ok] ** 2))
         n += int(ok.sum())
     if n == 0:
-        return {**NO_LOCAL, "where": "held"}
+        return dict(NO_LOCAL)
     mse0, mse1 = a0 / n, a1 / n
     excess = mse0 - floor ** 2
     return {"n": n, "explained": float((mse0 - mse1) / excess) if excess > 0 else 0.0,
-            "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor), "where": "held"}
+            "rms_gain_vs_noise": float((np.sqrt(mse0) - np.sqrt(mse1)) / floor)}
 
 
 _WORKER_DATA: ModelData | None = None

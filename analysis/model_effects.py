@@ -57,6 +57,8 @@ class Effect:
     bounds: ClassVar[tuple[float, float]] = (0.0, 0.0)
     per_curve: ClassVar[bool] = False
     frees_r: ClassVar[bool] = False
+    acts_where_held: ClassVar[bool] = False  # its local evidence is read where it holds the
+    #                                          actuator off the command (discrepancy.hold_gain)
     n_bases: ClassVar[int] = 0  # extra path bases per curve
     pairwise: ClassVar[bool] = False  # adds a 3D vector per DU pair and marker (y_n y_n' terms)
     fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
@@ -236,6 +238,7 @@ class StickSlipBacklash(Backlash):
     meaning: ClassVar[str] = ("stick-slip dead band: after every command reversal the actuator "
                               "holds until the command has come back 2 b, then jumps to it")
     form: ClassVar[str] = "stick-slip"
+    acts_where_held: ClassVar[bool] = True
 
     def actuator(self, a, t, sampler):
         if self.value <= 0:
