@@ -36,9 +36,9 @@ excursion, and the markers' independent errors add to the variance over markers.
    3 trials at 0.05 mm); where the smoothed chord clearly exceeds that level elsewhere (a path
    bulging past its end point), the mean over the frames within 5 % of its smoothed maximum;
 4. per frame, the variance over the markers of delta = g / max (each delta averaged over a box
-   of ``box_s``, and of ``HOLD_BOX_S`` deep in the settled hold at the top, where the deltas are
-   flat: the hold is most of the schedule and its true spread is near 0, so its noise, not its
-   spread, is what reaches gamma there) less the mean over the markers of each delta's noise
+   of ``box_s``, and of ``HOLD_BOX_S`` on the settled hold at the top, where the deltas are
+   flat (the box cut at the hold's ends): the hold is most of the schedule and its true
+   spread is near 0, so its noise, not its spread, is what reaches gamma there) less the mean over the markers of each delta's noise
    variance (first order: the frame's own error through the chord's slope, the rest reference's
    through the chord's ``rest_gain`` (an error along the path at rest moves the chord by the
    slope at rest near rest, up to 1.4 times the error on a bowed path, and by about the error
@@ -69,7 +69,7 @@ excursion, and the markers' independent errors add to the variance over markers.
    within the window (+1.4 % on noise-free bowed faces): both are costs only where the spread is
    far above the noise, which is where the finer estimates can be afforded. Each finer level's
    root is blended over the coarser ones with a weight rising from 0 to 1 as the coarse variance
-   goes from ``FINE_SNR`` = 2 to 5 standard deviations of the finer level's noise (never deep in
+   goes from ``FINE_SNR`` = 2 to 5 standard deviations of the finer level's noise (never on
    the hold). Noise-free faces: -1.6 -> +0.3 % (off-chord), +1.4 -> +0.1 % (bowed); 3 trials at
    0.05 mm with the session's pooled rest, 30 faces of 60 markers: off-chord -3.5 -> -2.1 % on
    average (worst face 9.9 -> 8.3 %), bowed +1.2 -> +0.4 %.
@@ -105,7 +105,7 @@ NORMALISE_S = 0.25  # smoothing of the chord for finding its plateau (3 s hold i
 MIN_NOISE_DOF = 30  # per marker, below this the still frames do not measure the noise
 PATH_DEGREE = 3  # the perpendicular part of a path as a polynomial of this degree in p
 SOFT_ROOT = 3.0  # the spread's root is linear below this many sd of its variance's noise
-HOLD_BOX_S = 0.5  # the box of the deltas deep in the settled hold (flat there)
+HOLD_BOX_S = 1.0  # the box of the deltas over the settled hold (flat there), cut at its ends
 FINE_LEVELS_S = (0.025, 0.0)  # finer boxes (and variance smoothing) where the spread allows; 0: a frame
 FINE_SNR = (2.0, 5.0)  # a finer level's weight rises from 0 to 1 over this variance / its noise sd
 
@@ -452,14 +452,12 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     mean (n_frames, M, 3) mm trial means; n_trials (n_frames, M); keep (M,) bool; noise_cov
     (M, 3, 3) mm^2 per trial and frame; rest_prior: see :func:`path_chord`. Each delta is
     averaged over a centred box of ``box_s`` (its white noise down by the box's length; a box far
-    shorter than a ramp barely changes the spread between markers), and over ``hold_box_s`` where
-    that box lies inside the settled hold at the top command (the deltas are flat there), the
+    shorter than a ramp barely changes the spread between markers), and over ``hold_box_s`` on the
+    settled hold at the top command (the deltas are flat there; the box cut at the hold's ends), the
     variance over markers less its noise averaged over ``smooth_s``; where that variance is well
     above the noise of finer boxes (``FINE_LEVELS_S``), their roots take over (step 6). Returns
     (gamma, the path chords).
     """
-    from scipy.ndimage import minimum_filter1d
-
     pc = path_chord(mean, n_trials, timing, fps, noise_cov, rest_prior)
     n = np.shape(mean)[0]
     keep = np.asarray(keep, bool) & np.any(np.isfinite(pc.delta), axis=0)
@@ -477,13 +475,17 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
     # threshold from the long box there would steepen the root as much as the box cuts the noise)
     tau = variance_noise_sd(d[sched][:, keep], nv[sched][:, keep], frames, smooth,
                             at_zero_spread=True)
-    hold = hold_frames(n, timing, fps) & inside
+    # the settled hold's deltas are flat: every frame of it takes the long box, the box cut
+    # at the hold's ends (there it averages the hold's frames on one side only, still far more
+    # than the short box: at 3 trials and 0.05 mm the face-to-face sd fell 3.6 -> 3.3 % on
+    # bowed faces and 3.5 -> 3.2 % on off-chord ones against the long box only where it fitted
+    # whole, with 0.5 s; 1 s: 3.0 and 3.2 %)
     long = max(frames, int(round(hold_box_s * fps)))
-    deep = minimum_filter1d(hold.astype(np.uint8), long + smooth + 1, mode="constant").astype(bool)
-    if long > frames and deep.any():
+    hold = hold_frames(n, timing, fps) & inside
+    if long > frames and hold.any():
         pc_h = replace(pc, delta=np.where(hold[:, None], pc.delta, np.nan))
-        d = np.where(deep[:, None], box_mean(pc_h.delta, long)[0], d)
-        nv = np.where(deep[:, None], delta_noise_variance(pc_h, n_trials, long), nv)
+        d = np.where(hold[:, None], box_mean(pc_h.delta, long)[0], d)
+        nv = np.where(hold[:, None], delta_noise_variance(pc_h, n_trials, long), nv)
     var = _spread_variance(d[sched][:, keep], nv[sched][:, keep], smooth)
     # the mean of the (soft) signed roots is unbiased where the spread is 0 or well above its
     # noise; it is negative only where the spread is lost in the noise, and a standard deviation
@@ -499,7 +501,7 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
         tau_f = variance_noise_sd(d_f, nv_f, f, f, at_zero_spread=True)
         with np.errstate(invalid="ignore", divide="ignore"):
             w = np.clip((var / tau_f - FINE_SNR[0]) / (FINE_SNR[1] - FINE_SNR[0]), 0.0, 1.0)
-        w = np.where(np.isfinite(w) & ~deep[sched], w, 0.0)
+        w = np.where(np.isfinite(w) & ~hold[sched], w, 0.0)
         if w.any():
             fine = soft_signed_sqrt(_spread_variance(d_f, nv_f, f),
                                     SOFT_ROOT * np.where(np.isfinite(tau_f), tau_f, 0.0))
