@@ -357,16 +357,37 @@ def fit_curves(data: ModelData, effects, takes, warm: FaceModel | None = None,
                 model = _fit_all_curves(data, effects, takes, model, 0, model.density,
                                         model.take_shifts, model.branch)
     if any(type(e).pairwise for e in effects):
-        _fit_pairs(data, model, takes, kappa=not shifting)
-        if shifting:
-            # the multi-DU takes' shifts were identified without the pair terms and hold part of
-            # the coupling (a bias shift lowers a DU's response as a loss does): identify them
-            # again with the pairs, then the pairs again
-            multi = multi_du_takes(data, takes)
-            for r in range(PAIR_ROUNDS):
-                _refresh_shifts(data, model, multi)
-                _fit_pairs(data, model, takes, kappa=r == PAIR_ROUNDS - 1)
+        model = _fit_pairs_and_shifts(data, model, takes, shifting)
     return model
+
+
+def _fit_pairs_and_shifts(data: ModelData, model: FaceModel, takes, shifting: bool) -> FaceModel:
+    """The pair vectors of ``model`` fitted on ``takes``, and with take shifts the multi-DU
+    takes' shifts and the pair vectors identified in turn (:data:`PAIR_ROUNDS`), from two starts:
+    the shifts as they stand, and the multi-DU takes' shifts at 0 (a take's shift is the face's
+    trial-to-trial jitter, zero-mean). The shifts as they stand were identified without the pair
+    terms and hold part of the coupling (a bias shift lowers a DU's response as a loss does),
+    and the alternation only creeps away from there: on a 4-DU Preisach face with straight paths
+    and the simulator's product coupling (kappa 0.35) the shifts of a 3-DU smile stayed at -1,
+    21 and 8 command units for a truth of 0.1, 3.8 and -0.2, the smiles fitted in-sample at 1.23
+    and 1.48 x the noise floor; from 0 at 1.01 and 1.07 x, the shifts at 1.6, 3.7 and 3.1, and
+    the training SSE 395.3 -> 363.5 mm^2. The start with the lower training SSE is kept."""
+    multi = multi_du_takes(data, takes) if shifting else []
+    fits = []
+    for zero in ((False, True) if multi else (False,)):
+        m = replace(model, take_shifts=dict(model.take_shifts), info=dict(model.info))
+        if zero:
+            for k in multi:
+                t = data.takes[k]
+                m.take_shifts[t.name] = {int(d): 0.0 for d in t.dus}
+        _fit_pairs(data, m, takes, kappa=not shifting)
+        for r in range(PAIR_ROUNDS if shifting else 0):
+            _refresh_shifts(data, m, multi)
+            _fit_pairs(data, m, takes, kappa=r == PAIR_ROUNDS - 1)
+        fits.append(m)
+    if len(fits) == 1:
+        return fits[0]
+    return min(fits, key=lambda m: sse(data, m, takes)[0])
 
 
 PAIR_ROUNDS = 2  # shifts <-> pair vectors alternations after the pairs' first fit

@@ -330,3 +330,32 @@ def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
     assert pooled.take_shifts.keys() == here.take_shifts.keys()
     for take, shifts in here.take_shifts.items():
         assert pooled.take_shifts[take] == pytest.approx(shifts, rel=1e-9, abs=1e-12), take
+
+
+def test_multi_du_take_shifts_are_the_faces_not_the_couplings(tmp_path):
+    """A 3-DU face (DUs 1, 7, 12 with the smile plans A and C, Preisach skin, straight paths)
+    with the simulator's product coupling (alt, kappa 0.35): the coupling model's bias shift of
+    every multi-DU take against the shift the simulator drew for that take (truth.json). A
+    take's shift and a coupling loss both lower a DU's response; identified before the pair
+    vectors, the smiles' shifts held the coupling (measured: 4.5 to 18.7 command units off the
+    drawn ones, which are within +-3), and the alternation with the pair vectors did not bring
+    them back. Fitted again from 0 as well, the better start kept (measured: within 2.3)."""
+    from mocap.analysis.model_effects import UniformCouplingLaw
+    from mocap.analysis.model_fit import fit_curves, multi_du_takes
+
+    root = make_session(tmp_path, seed=5, du_ids=(1, 7, 12), n_markers=10, n_trials=3,
+                        labeled=True, labeled_noise_mm=0.03, motion_plans=("A", "C"),
+                        face_family="preisach-straight", effect=make_effect("coupling", form="alt"))
+    drawn = {t["name"]: {int(d): v for d, v in t["bias_shift"].items()}
+             for t in json.loads((root / "truth" / "truth.json").read_text())["takes"]}
+    data = _prepared(root).data
+    takes = list(range(len(data.takes)))
+    base = fit_base(data, make_effects(BASE), takes)
+    model = fit_curves(data, base.effects + (UniformCouplingLaw(0.2),), takes, warm=base, iters=30)
+    multi = multi_du_takes(data, takes)
+    assert len(multi) == 4 and any(len(data.takes[k].dus) == 3 for k in multi)
+    for k in multi:
+        t = data.takes[k]
+        for d in t.dus:
+            err = model.take_shifts[t.name][d] - drawn[t.name][d]
+            assert abs(err) < 4.0, (t.name, d, model.take_shifts[t.name], drawn[t.name])
