@@ -337,7 +337,7 @@ def test_multi_du_take_shifts_are_the_faces_not_the_couplings(tmp_path):
     with the simulator's product coupling (alt, kappa 0.35): the coupling model's bias shift of
     every multi-DU take against the shift the simulator drew for that take (truth.json). A
     take's shift and a coupling loss both lower a DU's response; identified before the pair
-    vectors, the smiles' shifts held the coupling (measured: 4.5 to 18.7 command units off the
+    vectors, the smiles' shifts held the coupling (measured: 3.6 to 18.7 command units off the
     drawn ones, which are within +-3), and the alternation with the pair vectors did not bring
     them back. Fitted again from 0 as well, the better start kept (measured: within 2.3)."""
     from mocap.analysis.model_effects import UniformCouplingLaw
