@@ -372,22 +372,26 @@ def _fit_pairs_and_shifts(data: ModelData, model: FaceModel, takes, shifting: bo
     21 and 8 command units for a truth of 0.1, 3.8 and -0.2, the smiles fitted in-sample at 1.23
     and 1.48 x the noise floor; from 0 at 1.01 and 1.07 x, the shifts at 1.6, 3.7 and 3.1, and
     the training SSE 395.3 -> 363.5 mm^2. The start with the lower training SSE is kept."""
-    multi = multi_du_takes(data, takes) if shifting else []
+    if not shifting:
+        _fit_pairs(data, model, takes)
+        return model
+    multi = multi_du_takes(data, takes)
     fits = []
     for zero in ((False, True) if multi else (False,)):
         m = replace(model, take_shifts=dict(model.take_shifts), info=dict(model.info))
         if zero:
             for k in multi:
-                t = data.takes[k]
-                m.take_shifts[t.name] = {int(d): 0.0 for d in t.dus}
-        _fit_pairs(data, m, takes, kappa=not shifting)
-        for r in range(PAIR_ROUNDS if shifting else 0):
+                m.take_shifts[data.takes[k].name] = {int(d): 0.0 for d in data.takes[k].dus}
+        _fit_pairs(data, m, takes, kappa=False)
+        for _ in range(PAIR_ROUNDS):
             _refresh_shifts(data, m, multi)
-            _fit_pairs(data, m, takes, kappa=r == PAIR_ROUNDS - 1)
+            _fit_pairs(data, m, takes, kappa=False)
         fits.append(m)
-    if len(fits) == 1:
-        return fits[0]
-    return min(fits, key=lambda m: sse(data, m, takes)[0])
+    # the starts differ only on the multi-DU takes (their shifts; the pair terms act nowhere
+    # else), so they are compared there; kappa is read once, for the one kept
+    best = fits[0] if len(fits) == 1 else min(fits, key=lambda m: sse(data, m, multi)[0])
+    best.info["coupling_kappa"] = coupling_kappa(data, best, takes)
+    return best
 
 
 PAIR_ROUNDS = 2  # shifts <-> pair vectors alternations after the pairs' first fit

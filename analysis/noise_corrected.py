@@ -38,11 +38,11 @@ excursion, and the markers' independent errors add to the variance over markers.
 4. per frame, the variance over the markers of delta = g / max (each delta averaged over a box
    of ``box_s``, and of ``HOLD_BOX_S`` on the settled hold at the top, where the deltas are
    flat (the box cut at the hold's ends): the hold is most of the schedule and its true
-   spread is near 0, so its noise, not its spread, is what reaches gamma there) less the mean over the markers of each delta's noise
-   variance (first order: the frame's own error through the chord's slope, the rest reference's
-   through the chord's ``rest_gain`` (an error along the path at rest moves the chord by the
-   slope at rest near rest, up to 1.4 times the error on a bowed path, and by about the error
-   itself at the far end), the maximum's, with their overlaps; ``delta_noise_variance``), an
+   spread is near 0, so its noise, not its spread, is what reaches gamma there) less the mean
+   over the markers of each delta's noise variance (first order: the frame's own error through
+   the chord's slope, the rest reference's through the chord's ``rest_gain`` (an error along
+   the path at rest moves the chord by the slope at rest near rest, up to 1.4 times the error
+   on a bowed path, and by about the error itself at the far end), the maximum's, with their overlaps; ``delta_noise_variance``), an
    unbiased estimate of the noise-free variance;
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
    deviation by a soft signed square root (``soft_signed_sqrt``): the plain root where the
