@@ -42,8 +42,8 @@ excursion, and the markers' independent errors add to the variance over markers.
    over the markers of each delta's noise variance (first order: the frame's own error through
    the chord's slope, the rest reference's through the chord's ``rest_gain`` (an error along
    the path at rest moves the chord by the slope at rest near rest, up to 1.4 times the error
-   on a bowed path, and by about the error itself at the far end), the maximum's, with their overlaps; ``delta_noise_variance``), an
-   unbiased estimate of the noise-free variance;
+   on a bowed path, and by about the error itself at the far end), the maximum's, with their
+   overlaps; ``delta_noise_variance``), an unbiased estimate of the noise-free variance;
 5. that variance averaged over ``smooth_s`` (a few command steps) and turned into a standard
    deviation by a soft signed square root (``soft_signed_sqrt``): the plain root where the
    variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise where
