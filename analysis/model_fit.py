@@ -1240,22 +1240,21 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     if cls.command_grid and fixed is None:
         # a dead band that releases at command rows fits the same for every width between two
         # rows' thresholds: report that plateau and its centre, not whichever value was tried.
-        # "The same" to within the fits' own reproducibility: the best value fitted again from
-        # the model of the nearest other value tried (the profile's fits stop after a few
-        # iterations, so each carries its warm start's path). After a coupling the rows a 3-DU
-        # smile adds differ by 0.01-0.03 mm^2 of 361 while the best value refitted from its
-        # neighbours' models moves by 0.07-0.08: the exact-equality plateau read 7.0 for a band
-        # of 12, and the width fitted from the best's own model at 12 scored 0.06 below it.
-        if stage2:
-            tol = _reproducibility(data, takes, cache2, best_key,
-                                   lambda v, w: fit_curves(data, others + (cls(v),), takes,
-                                                           warm=w, iters=5))
-            interval = _plateau(evaluate2, cache2, best_key, cls.bounds, probes=keys, tol=tol)
-        else:
-            tol = _reproducibility(data, takes, cache, best_key,
-                                   lambda v, w: fit_curves(data, others + (cls(v),), takes,
-                                                           warm=w, iters=5, rounds=inner_rounds))
-            interval = _plateau(evaluate, cache, best_key, cls.bounds, tol=tol)
+        # "The same" to within the fits' own reproducibility: the best value fitted again, as
+        # the profile fitted it, from the models of the nearest values tried on either side
+        # (the profile's fits stop after a few iterations, so each carries its warm start's
+        # path). After a coupling the rows a 3-DU smile adds differ by 0.01-0.03 mm^2 of 361
+        # while the best value refitted from its neighbours' models moves by 0.07-0.08: the
+        # exact-equality plateau read 7.0 for a band of 12, and the width fitted from the
+        # best's own model at 12 scored 0.06 below it.
+        def refit(v: float, warm: FaceModel) -> FaceModel:
+            return fit_curves(data, others + (cls(v),), takes, warm=warm, iters=5,
+                              rounds=None if stage2 else inner_rounds)
+
+        ev, tried = (evaluate2, cache2) if stage2 else (evaluate, cache)
+        tol = _reproducibility(data, takes, tried, best_key, refit)
+        interval = _plateau(ev, tried, best_key, cls.bounds, probes=keys if stage2 else (),
+                            tol=tol)
         if interval is not None:
             centre = 0.5 * (interval[0] + interval[1])
             best_key = round(centre, 9)
