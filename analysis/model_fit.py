@@ -1133,6 +1133,10 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
     # nearest value tried, the grid ascending
     cont = fixed is None and cls.continuation
 
+    def point(v: float, warm: FaceModel, rounds: int | None = inner_rounds) -> FaceModel:
+        # one profile point: the curves refitted at ``v`` from ``warm``, a few iterations
+        return fit_curves(data, others + (cls(v),), takes, warm=warm, iters=5, rounds=rounds)
+
     def warm_for(key: float) -> FaceModel:
         if not cont or not cache:
             return base
@@ -1144,8 +1148,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
         if key not in cache:
             effs = others + (cls(v),)
             if fixed is None:
-                m = fit_curves(data, effs, takes, warm=warm_for(key), iters=5,
-                               rounds=inner_rounds)
+                m = point(v, warm_for(key))
             else:
                 m = replace(fixed, effects=effs, info=dict(fixed.info))
                 if refresh:  # the shifts of the takes the value moves, identified again
@@ -1184,7 +1187,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
         m = cache[best_key][1]
         down = sorted((round(float(v), 9) for v in grid if v < best_key), reverse=True)
         for v in down + ([null_key] if not down or down[-1] != null_key else []):
-            m = fit_curves(data, others + (cls(v),), takes, warm=m, iters=5, rounds=inner_rounds)
+            m = point(v, m)
         if sse(data, m, takes)[0] < cache[null_key][0]:
             m_null = m
     if cls.pairwise and fixed is not None:
@@ -1210,7 +1213,7 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
             v = float(np.clip(v, *cls.bounds))
             key = round(v, 9)
             if key not in cache2:
-                m = fit_curves(data, others + (cls(v),), takes, warm=warm2, iters=5)
+                m = point(v, warm2, rounds=None)
                 cache2[key] = (sse(data, m, takes)[0], m)
             return cache2[key][0]
 
@@ -1247,12 +1250,9 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
         # while the best value refitted from its neighbours' models moves by 0.07-0.08: the
         # exact-equality plateau read 7.0 for a band of 12, and the width fitted from the
         # best's own model at 12 scored 0.06 below it.
-        def refit(v: float, warm: FaceModel) -> FaceModel:
-            return fit_curves(data, others + (cls(v),), takes, warm=warm, iters=5,
-                              rounds=None if stage2 else inner_rounds)
-
         ev, tried = (evaluate2, cache2) if stage2 else (evaluate, cache)
-        tol = _reproducibility(data, takes, tried, best_key, refit)
+        tol = _reproducibility(data, takes, tried, best_key,
+                               lambda v, w: point(v, w, None if stage2 else inner_rounds))
         interval = _plateau(ev, tried, best_key, cls.bounds, probes=keys if stage2 else (),
                             tol=tol)
         if interval is not None:
