@@ -708,3 +708,48 @@ def evaluate_design(X: np.ndarray, rows: pd.DataFrame, fps: float, ref: Referenc
         return slice(int(round(a_b[0] * fps)), min(int(round(a_b[1] * fps)), n))
 
     return evaluate_motion(delta, ideal, fps, window(ref.rise), window(ref.fall), k)
+
+
+@dataclass(frozen=True)
+class TrackingFloor:
+    """The least tracking RMS any command file on a command grid can reach on a face that
+    responds at once (:func:`tracking_floor`); the parts in the evaluation's units (normalised
+    displacement), averaged as the design's score is: 0.5 (forward + backward)."""
+
+    forward: float  # staircase of the held commands over the rise
+    backward: float  # staircase over the fall, no lower than the face's set at command 0
+    set_level: float  # the mean normalised displacement the face keeps at command 0 (given)
+
+    @property
+    def rms(self) -> float:
+        return 0.5 * (self.forward + self.backward)
+
+
+def tracking_floor(ref: Reference, command_times_s: np.ndarray, fps: float,
+                   set_level: float = 0.0) -> TrackingFloor:
+    """The tracking RMS below which no command file on the grid ``command_times_s`` (s, the rows'
+    times; :func:`command_times`) can go, for a face whose markers respond at once and whose
+    lowest displacement after the motion is ``set_level`` (mean normalised displacement at
+    command 0 after the full motion: the set a hysteresis leaves; 0 for none).
+
+    A frame at t is driven by the last row at or before t (FORMAT.md), so a face without dynamics
+    holds every marker's normalised displacement, and their mean, constant between two rows: the
+    best constant over a step is the plan's mean over that step's frames, and over the fall no
+    lower than the set (on the way down a play-type hysteresis is lowest at command 0). The RMS
+    of that best staircase against the plan over the evaluation's windows is the floor. It is not
+    a bound for a face with actuator dynamics (a lag smooths the staircase) and is only as good
+    as ``set_level``; the design sweep measures the set on a played take of the true face."""
+    times = np.sort(np.asarray(command_times_s, float))
+    n = int(np.ceil(ref.end_s * fps)) + 1
+    t = np.arange(n) / fps
+    ideal = np.interp(t, ref.t_s, ref.ideal)
+    step = np.searchsorted(times, t + 1e-9, side="right")  # 0 before the first row
+    sums = np.bincount(step, weights=ideal, minlength=times.size + 1)
+    counts = np.bincount(step, minlength=times.size + 1)
+    best = (sums / np.maximum(counts, 1))[step]
+
+    def rms(a_b, lo):
+        sl = slice(int(round(a_b[0] * fps)), min(int(round(a_b[1] * fps)), n))
+        return float(np.sqrt(np.mean((np.maximum(best[sl], lo) - ideal[sl]) ** 2)))
+
+    return TrackingFloor(rms(ref.rise, -np.inf), rms(ref.fall, float(set_level)), float(set_level))
