@@ -15,6 +15,7 @@ import pytest
 
 from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design, paper_design_series
 from mocap.analysis.model_design import (
+    command_times,
     design_commands,
     evaluate_design,
     file_reference,
@@ -24,6 +25,7 @@ from mocap.analysis.model_design import (
     refined_reference,
     rest_state,
     simulate_steps,
+    tracking_floor,
 )
 from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
@@ -210,6 +212,73 @@ def test_model_design_no_worse_on_a_face_without_effects(plain_face):
         des = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
         _, ev_m = plain_face.play(des.rows, ref)
         assert rms(ev_m) <= rms(ev_p), (plan, rms(ev_m), rms(ev_p))
+
+
+def test_tracking_floor_is_the_best_staircase_on_the_grid():
+    """The floor against a plain frame loop: each frame driven by the last row at or before it,
+    each step's level the plan's mean over its frames (over the fall no lower than the set);
+    no other staircase on the grid does better."""
+    ref = plan_reference("A", TIMING)
+    fps = 120.0
+    times = command_times(ref, TIMING.step_s, FALL_S)
+    set_level = 0.007
+    fl = tracking_floor(ref, times, fps, set_level)
+    n = int(np.ceil(ref.end_s * fps)) + 1
+    t = np.arange(n) / fps
+    ideal = np.interp(t, ref.t_s, ref.ideal)
+    owner = []
+    for tf in t:
+        k = 0
+        for i, tr in enumerate(times):
+            if tr <= tf + 1e-9:
+                k = i + 1
+        owner.append(k)
+    owner = np.array(owner)
+    levels = {k: ideal[owner == k].mean() for k in set(owner.tolist())}
+    best = np.array([levels[k] for k in owner])
+
+    def score(stairs):
+        out = []
+        for (a, b), lo in ((ref.rise, -np.inf), (ref.fall, set_level)):
+            sl = slice(int(round(a * fps)), int(round(b * fps)))
+            out.append(np.sqrt(np.mean((np.maximum(stairs[sl], lo) - ideal[sl]) ** 2)))
+        return out
+
+    fwd, bwd = score(best)
+    assert fl.forward == pytest.approx(fwd, rel=1e-9) and fl.backward == pytest.approx(bwd, rel=1e-9)
+    assert 0.003 < fl.forward < 0.006  # a 16 ms staircase at 120 fps on plan A's rise
+    assert fl.backward > tracking_floor(ref, times, fps, 0.0).backward  # the set costs on the fall
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        jitter = {k: rng.normal(0.0, 0.01) for k in levels}
+        other = best + np.array([jitter[k] for k in owner])
+        assert 0.5 * sum(score(other)) >= fl.rms
+
+
+def test_no_command_file_beats_the_tracking_floor_on_a_face_that_responds_at_once(plain_face):
+    """On the plain face (nothing hidden: no actuator dynamics) the paper's design, the model's
+    and commands scattered around them all track no better than the floor of their command
+    grid, with the set read on those plays (they all end at command 0); the model's design of
+    plan A comes within a factor 2 of it."""
+    rng = np.random.default_rng(1)
+    for plan in "AE":
+        ref = plan_reference(plan, TIMING)
+        des = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+        played = []
+        for rows in (paper_design(plan, plain_face.responses, TIMING, DUS), des.rows):
+            played.append(plain_face.play(rows, ref)[1])
+            c = rows["command"].to_numpy()
+            moved = np.clip(c + rng.integers(-6, 7, c.size), 0, 255)
+            moved[(c == 0)] = 0  # rest stays at rest: every file ends at command 0
+            played.append(plain_face.play(rows.assign(command=moved), ref)[1])
+        set_level = min(float(np.median(ev.mean[-24:])) for ev in played)
+        assert 0.0 < set_level < 0.05, set_level
+        fl = tracking_floor(ref, command_times(ref, TIMING.step_s, FALL_S), plain_face.cfg.fps,
+                            set_level)
+        for ev in played:
+            assert rms(ev) >= fl.rms, (plan, rms(ev), fl)
+        if plan == "A":
+            assert rms(played[2]) <= 2 * fl.rms, (rms(played[2]), fl)
 
 
 def test_model_design_with_coupled_dus(tmp_path_factory):
