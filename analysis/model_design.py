@@ -725,6 +725,19 @@ class TrackingFloor:
         return 0.5 * (self.forward + self.backward)
 
 
+def set_at_rest(plays, fps: float, tail_s: float = 0.2) -> float:
+    """The set a face keeps at command 0 after a motion, read on played takes: the lowest median
+    mean normalised displacement over the last ``tail_s`` of the plays (pairs of command rows
+    and their :func:`evaluate_design`) whose every DU ends at command 0; 0.0 if none does (the
+    floor then counts the staircase only, still a floor)."""
+    ends = []
+    for rows, ev in plays:
+        last = rows.sort_values("time_s", kind="stable").groupby("du")["command"].last()
+        if (last == 0).all():
+            ends.append(float(np.nanmedian(ev.mean[-max(1, int(round(tail_s * fps))):])))
+    return min(ends) if ends else 0.0
+
+
 def tracking_floor(ref: Reference, command_times_s: np.ndarray, fps: float,
                    set_level: float = 0.0) -> TrackingFloor:
     """The tracking RMS below which no command file on the grid ``command_times_s`` (s, the rows'

@@ -73,6 +73,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         evaluate_design,
         plan_reference,
         refined_reference,
+        set_at_rest,
         tracking_floor,
     )
     from mocap.design_io import identify_model, play_virtual_take, virtual_face_of
@@ -109,7 +110,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         t_design += time.process_time() - t0
         n_design += 1
         res = {}
-        ends = []  # the clean plays' mean normalised displacement at the end, where they end at 0
+        ends = []  # the clean plays (rows, evaluation): the set at command 0 is read on them
         for cond, noise, trial_var, plays in CONDITIONS:
             play_seed = [seed, PLANS.index(plan), 0]
 
@@ -121,9 +122,8 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
                     seed=int(np.random.SeedSequence(play_seed + [k]).generate_state(1)[0]),
                     trial_variation=trial_var)
                 ev = evaluate_design(Xt, rows, vcfg.fps, ref)
-                last = rows.sort_values("time_s", kind="stable").groupby("du")["command"].last()
-                if clean and (last == 0).all():
-                    ends.append(float(np.nanmedian(ev.mean[-int(0.2 * vcfg.fps):])))
+                if clean:
+                    ends.append((rows, ev))
                 return X, ev, evaluate_design(X, rows, vcfg.fps, ref)
 
             _, ev_p, evn_p = play(paper)
@@ -150,7 +150,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
                          "lag_paper_ms": round(ev_p.lag_s * 1000), "lag_model_ms": round(ev_m.lag_s * 1000)}
         if effect.split("=")[0] == "none":  # a face that responds at once: the staircase bound holds
             fl = tracking_floor(ref, command_times(ref, timing.step_s, fall), vcfg.fps,
-                                min(ends) if ends else 0.0)
+                                set_at_rest(ends, vcfg.fps))
             res["floor"] = {"rms": round(fl.rms, 5), "set": round(fl.set_level, 4),
                             "ratio": round(fl.rms / res["clean"]["paper"], 4)}
         out["plans"][plan] = res

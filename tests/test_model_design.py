@@ -24,13 +24,14 @@ from mocap.analysis.model_design import (
     plants,
     refined_reference,
     rest_state,
+    set_at_rest,
     simulate_steps,
     tracking_floor,
 )
 from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
 from mocap.cli import main
-from mocap.design_io import identify_model, load_model, play_virtual, virtual_face_of
+from mocap.design_io import identify_model, load_model, play_virtual, save_model, virtual_face_of
 from mocap.truth_properties import true_properties
 
 DUS = (1, 7, 12)
@@ -266,19 +267,19 @@ def test_no_command_file_beats_the_tracking_floor_on_a_face_that_responds_at_onc
         des = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
         played = []
         for rows in (paper_design(plan, plain_face.responses, TIMING, DUS), des.rows):
-            played.append(plain_face.play(rows, ref)[1])
             c = rows["command"].to_numpy()
             moved = np.clip(c + rng.integers(-6, 7, c.size), 0, 255)
             moved[(c == 0)] = 0  # rest stays at rest: every file ends at command 0
-            played.append(plain_face.play(rows.assign(command=moved), ref)[1])
-        set_level = min(float(np.median(ev.mean[-24:])) for ev in played)
+            for r in (rows, rows.assign(command=moved)):
+                played.append((r, plain_face.play(r, ref)[1]))
+        set_level = set_at_rest(played, plain_face.cfg.fps)
         assert 0.0 < set_level < 0.05, set_level
         fl = tracking_floor(ref, command_times(ref, TIMING.step_s, FALL_S), plain_face.cfg.fps,
                             set_level)
-        for ev in played:
+        for _, ev in played:
             assert rms(ev) >= fl.rms, (plan, rms(ev), fl)
         if plan == "A":
-            assert rms(played[2]) <= 2 * fl.rms, (rms(played[2]), fl)
+            assert rms(played[2][1]) <= 2 * fl.rms, (rms(played[2][1]), fl)
 
 
 def test_model_design_with_coupled_dus(tmp_path_factory):
@@ -338,6 +339,19 @@ def test_marker_choice_and_errors(lag_face, tmp_path):
 # the command line
 
 
+def test_design_check_reports_the_floor_of_the_command_grid(plain_face, tmp_path, capsys):
+    """--check on a face without actuator dynamics prints the grid's floor, and the played model
+    design sits above it."""
+    model_file = save_model(plain_face.model, tmp_path / "plain.model")
+    out = tmp_path / "smile_A.csv"
+    assert main(["design", str(plain_face.root / "session"), "--plan", "A", "--dus", "1,7,12",
+                 "--method", "model", "--model", str(model_file), "--check", "--out", str(out)]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("floor of the command")]
+    assert len(line) == 1, line
+    ratio = float(line[0].rsplit("model / floor", 1)[1])
+    assert 1.0 <= ratio <= 2.0, line[0]
+
+
 def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     src = lag_face.root / "session"
     out = tmp_path / "smile_planA.csv"
@@ -352,6 +366,7 @@ def test_design_cli_model_check_and_refine(lag_face, tmp_path, capsys):
     for name in ("alpha", "beta", "r", "D", "B", "density", "branch"):
         np.testing.assert_array_equal(getattr(saved, name), getattr(lag_face.model, name))
     assert "closed loop model" in text and (tmp_path / "smile_planA.check.png").is_file()
+    assert "floor of the command grid" not in text  # a lag smooths the staircase: no floor
     rows = pd.read_csv(out)
     assert_valid_command_file(rows, TIMING.step_s)
     assert (tmp_path / "smile_planA.reference.csv").is_file()

@@ -34,7 +34,10 @@ identifying the model again (a refinement's repetitions need it once).
 --check: for a simulated session, play the paper's and the model's designs on the same virtual
 face (the session's own: its base-face family and its hidden effect in the form it was made
 with), evaluate them against the plan (RMS of the normalised displacement forward and backward,
-lag) and draw them side by side (X.check.png).
+lag) and draw them side by side (X.check.png). On a face without actuator dynamics (no lag or
+dead time hidden) it also prints the floor of the command grid: the face holds still between two
+rows, so no command file on the grid tracks better than the plan's mean over each step, and on
+the way down no lower than the set the face keeps at command 0.
 
 Timing follows the paper unless told otherwise: --start-s 0.25 of rest, the plan over
 --duration-s 2.08 (130 command steps of --step-s 0.016), a --hold-s 1.0 hold, the return over
@@ -285,7 +288,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
 
 def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
     from mocap.analysis.figures import design_comparison, save
-    from mocap.analysis.model_design import evaluate_design
+    from mocap.analysis.model_design import evaluate_design, set_at_rest, tracking_floor
     from mocap.design_io import play_virtual, virtual_face_of
 
     sim = virtual_face_of(args.source)
@@ -303,6 +306,16 @@ def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
         print(f"closed loop {name:<6} RMS forward {ev.rms_forward:.4f} backward {ev.rms_backward:.4f} "
               f"(per marker {ev.rms_markers_forward:.4f} / {ev.rms_markers_backward:.4f}), "
               f"lag {ev.lag_s * 1000:.0f} ms")
+    # the floor of the command grid, where the face has no actuator dynamics (a lag smooths the
+    # staircase, a dead time shifts it): the set at command 0 read on the plays that end there
+    dynamic = {"lag", "deadtime"} & set(cfg.effect.name.split("+"))
+    if not dynamic:
+        fl = tracking_floor(ref, sorted(set(model_rows["time_s"])), cfg.fps,
+                            set_at_rest(zip((paper_rows, model_rows), evs.values()), cfg.fps))
+        print(f"floor of the command grid RMS forward {fl.forward:.4f} backward {fl.backward:.4f} "
+              f"(no command file on it does better on this face: the held commands' staircase, "
+              f"and the set of {fl.set_level:.4f} it keeps at command 0); model / floor "
+              f"{0.5 * (evs['model'].rms_forward + evs['model'].rms_backward) / fl.rms:.2f}")
     fig = args.out.with_name(args.out.stem + ".check.png")
     save(design_comparison(f"plan {args.plan}, DUs {dus}, hidden effect {cfg.effect.name}", evs), fig)
     print(f"figure: {fig}")
