@@ -49,21 +49,6 @@ def rms(ev) -> float:
     return 0.5 * (ev.rms_forward + ev.rms_backward)
 
 
-def paper_responses(session: Path, work: Path, dus=DUS):
-    """The paper's sigmoids as 'mocap design --method paper' identifies them from a session."""
-    import pandas as pd
-
-    from mocap.analysis.design import SigmoidPair
-    from mocap.pipeline import RunSettings, run_session
-
-    run_session(session, work, settings=RunSettings(recording=False))
-    props = pd.read_csv(work / "properties.csv").set_index("du")
-    suffix = "_along_path" if "alpha_fwd_along_path" in props.columns else ""
-    return {d: SigmoidPair(*(props.loc[d, f"{k}{suffix}"]
-                             for k in ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd")))
-            for d in dus}
-
-
 def run_case(family: str, effect: str, form: str, seed: int, root: Path,
              refine_gain: dict[str, float], plans=PLANS) -> dict:
     from mocap.analysis.design import PlanTiming, paper_design
@@ -76,7 +61,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         set_at_rest,
         tracking_floor,
     )
-    from mocap.design_io import identify_model, play_virtual_take, virtual_face_of
+    from mocap.design_io import identify_model, paper_responses, play_virtual_take, virtual_face_of
     from mocap.simulate import preset, simulate
     from mocap.simulate.effects import make_effect
 
@@ -90,7 +75,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
     model, how = identify_model(d / "session")
     t_identify = time.process_time() - t0
     t0 = time.process_time()
-    responses = paper_responses(d / "session", d / "run")
+    responses = paper_responses(d / "session", DUS)
     t_paper = time.process_time() - t0
     vcfg, face = virtual_face_of(d / "session")
     assert vcfg.face_family == family and vcfg.effect == cfg.effect, (vcfg, cfg)

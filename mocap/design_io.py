@@ -18,6 +18,42 @@ from mocap.analysis.model_design import Reference
 from mocap.session import SessionError
 
 
+def paper_responses(source, dus, progress=None) -> dict:
+    """Each DU's paper sigmoids (:class:`mocap.analysis.design.SigmoidPair`), what ``mocap design
+    --method paper`` inverts: read from ``source``/properties.csv of a 'mocap run' output, or
+    identified from a session in a temporary run (the sigmoids only: no recording, no bootstrap
+    intervals; removed afterwards). The along-path columns where the output has them (the
+    face's response in command units with little noise bias, docs/indices.md), the paper's
+    literal ones otherwise (outputs written before they existed). ``progress``: str -> None.
+    Raises ValueError naming the file when a DU has no identified response."""
+    import tempfile
+
+    from mocap.analysis.design import SigmoidPair
+
+    source = Path(source)
+    props_path = source / "properties.csv"
+    if props_path.is_file():
+        props = pd.read_csv(props_path).set_index("du")
+    else:
+        from mocap.pipeline import RunSettings, run_session
+
+        with tempfile.TemporaryDirectory(prefix="mocap-design-") as work:
+            if progress:
+                progress(f"identifying the responses of {source}")
+            run_session(source, work, progress=progress,
+                        settings=RunSettings(recording=False, bootstrap_samples=0))
+            props = pd.read_csv(Path(work) / "properties.csv").set_index("du")
+        props_path = source / "session.toml"
+    missing = [d for d in dus if d not in props.index]
+    if missing:
+        raise ValueError(f"{props_path}: no identified response for DUs {missing} "
+                         f"(has {sorted(props.index)})")
+    suffix = "_along_path" if "alpha_fwd_along_path" in props.columns else ""
+    return {d: SigmoidPair(*(props.loc[d, f"{k}{suffix}"]
+                             for k in ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd")))
+            for d in dus}
+
+
 def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[FaceModel, str]:
     """The identified face model of a session or a `mocap run` output folder.
 

@@ -52,6 +52,10 @@ examples:
 """
 
 
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", type=Path,
                    help="a 'mocap run' output folder (properties.csv) or a session folder")
@@ -107,38 +111,6 @@ def _timing(args):
         steps = int(round(args.duration_s / args.step_s))
     return PlanTiming(start_s=args.start_s, n_steps=steps or 130, step_s=args.step_s,
                       hold_s=args.hold_s, tail_s=args.tail_s)
-
-
-def _responses(source: Path, dus):
-    import tempfile
-
-    import pandas as pd
-
-    from mocap.analysis.design import SigmoidPair
-
-    props_path = source / "properties.csv"
-    if props_path.is_file():
-        props = pd.read_csv(props_path).set_index("du")
-    else:  # a session: identify its responses in a temporary run, removed afterwards
-        from mocap.pipeline import RunSettings, run_session
-
-        with tempfile.TemporaryDirectory(prefix="mocap-design-") as work:
-            print(f"identifying the responses of {source}", file=sys.stderr)
-            run_session(source, work, progress=lambda m: print(m, file=sys.stderr),
-                        settings=RunSettings(recording=False))
-            props = pd.read_csv(Path(work) / "properties.csv").set_index("du")
-        props_path = source / "session.toml"
-    missing = [d for d in dus if d not in props.index]
-    if missing:
-        raise ValueError(f"{props_path}: no identified response for DUs {missing} "
-                         f"(has {sorted(props.index)})")
-    # the along-path estimator's sigmoids when the output has them: the face's response in
-    # command units with little noise bias (docs/indices.md); the paper's literal columns
-    # otherwise (outputs written before they existed)
-    suffix = "_along_path" if "alpha_fwd_along_path" in props.columns else ""
-    return {d: SigmoidPair(*(props.loc[d, f"{k}{suffix}"]
-                             for k in ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd")))
-            for d in dus}
 
 
 def _paper_rows(plan, plan_file, responses, timing, dus):
@@ -203,7 +175,10 @@ def run(args: argparse.Namespace) -> int:
                 print("note: the paper's rule on a plan with reversals jumps between its forward "
                       "and backward sigmoids (no minor loops); --method model handles them",
                       file=sys.stderr)
-            rows = _paper_rows(plan, plan_file, _responses(args.source, dus), timing, dus)
+            from mocap.design_io import paper_responses
+
+            rows = _paper_rows(plan, plan_file, paper_responses(args.source, dus, _stderr), timing,
+                               dus)
             write_csv(rows, args.out, decimals=6)
             print(f"plan {args.plan} on DUs {dus}: {len(rows)} command rows over "
                   f"{float(rows.time_s.max()):.2f} s written to {args.out}")
@@ -289,7 +264,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
 def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
     from mocap.analysis.figures import design_comparison, save
     from mocap.analysis.model_design import evaluate_design, set_at_rest, tracking_floor
-    from mocap.design_io import play_virtual, virtual_face_of
+    from mocap.design_io import paper_responses, play_virtual, virtual_face_of
 
     sim = virtual_face_of(args.source)
     if sim is None:
@@ -297,7 +272,8 @@ def _check(args, plan, plan_file, dus, timing, ref, model_rows) -> int:
               file=sys.stderr)
         return 1
     cfg, face = sim
-    paper_rows = _paper_rows(plan, plan_file, _responses(args.source, dus), timing, dus)
+    paper_rows = _paper_rows(plan, plan_file, paper_responses(args.source, dus, _stderr), timing,
+                             dus)
     evs = {}
     for name, rows in (("paper", paper_rows), ("model", model_rows)):
         X = play_virtual(cfg, face, rows, ref.end_s + 0.25)
