@@ -113,45 +113,17 @@ class Reference:
 
 def plan_reference(plan: str, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002) -> Reference:
     """The ideal of plan A-E (rest, P rising, hold, 1 - P, rest), as :meth:`PlanTiming.ideal`,
-    with the hold at :func:`hold_level` (a little above the full motion 1) in the reference the
-    design tracks: the evaluation normalises each marker by its displacement's plateau, the
-    mean over every frame within 5 % of its maximum, and that takes in the top of the rise and
-    the start of the fall (plans B and D also end their rise at 0.993)."""
+    except that the hold is the full motion 1 (plans B and D end their rise at 0.993; the
+    evaluation normalises each marker by its largest displacement, which is the hold's)."""
     if plan.upper() not in PLAN_NAMES:
         raise ValueError(f"motion plan: expected one of {', '.join(PLAN_NAMES)}, got {plan!r}")
     t = np.arange(0.0, timing.total_s + dt_s, dt_s)
     back = timing.start_s + timing.duration_s + timing.hold_s
     ideal = timing.ideal(t, plan.upper())
-    hold = (t >= timing.start_s + timing.duration_s) & (t < back)
-    r = np.where(hold, hold_level(ideal, hold), ideal)
+    r = np.where((t >= timing.start_s + timing.duration_s) & (t < back), 1.0, ideal)
     return Reference(t, r, ideal,
                      (timing.start_s, timing.start_s + timing.duration_s),
                      (back, back + timing.duration_s), timing.start_s, timing.total_s, plan.upper())
-
-
-def hold_level(ideal: np.ndarray, hold: np.ndarray) -> float:
-    """The level of a hold that makes a reference's plateau mean its full motion 1.
-
-    ideal (T,) on an even time grid; hold (T,) bool, the held frames. The evaluation divides each
-    marker's displacement by the mean over its plateau, the frames within ``PLATEAU`` (5 %) of
-    its maximum (:func:`mocap.reconstruct.displacement.plateau_level`), so a take that follows
-    the ideal with a hold at 1 is divided by less than its full motion (the top of the rise and
-    the start of the fall, 0.95-1, are in the plateau) and reads high by that much wherever it is
-    scored: 0.26 % on plan A, all along the top of the rise and the start of the fall. Held at
-    h = 1 + sum over the other plateau frames of (1 - ideal) / (hold frames), the plateau's mean
-    is 1 and the take is read as it moves. (Found on straight-path faces, where the first design
-    tracked plan A at 0.335 of the paper's RMS with a +0.0026 offset there; held at h, 0.322.)"""
-    from mocap.reconstruct.displacement import PLATEAU
-
-    ideal = np.asarray(ideal, float)
-    hold = np.asarray(hold, bool)
-    if not hold.any():
-        return 1.0
-    h = 1.0
-    for _ in range(3):  # the band's edge moves with h (a fixed point within a few steps)
-        band = ~hold & (ideal >= PLATEAU * h)
-        h = 1.0 + float(np.sum(1.0 - ideal[band])) / int(hold.sum())
-    return h
 
 
 def file_reference(path, timing: PlanTiming = PlanTiming(), dt_s: float = 0.002) -> Reference:
