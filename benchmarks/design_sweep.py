@@ -246,16 +246,20 @@ def main() -> int:
     ap.add_argument("--gain-noisy", type=float, default=1.0)
     ap.add_argument("--shard", default="0/1")
     ap.add_argument("--shuffle", action="store_true", help="run the cases in a seeded shuffled order")
+    ap.add_argument("--skip", nargs="*", type=Path, default=[],
+                    help="JSON-lines files of earlier runs: their cases are not run again (resume)")
     ap.add_argument("--summarise", nargs="*", type=Path, help="JSON-lines files of earlier runs")
+    ap.add_argument("--out", default="design_sweep",
+                    help="with --summarise: the table's file stem in benchmarks/ (default design_sweep)")
     ap.add_argument("--note", default="", help="a paragraph added to the table (how it was run)")
     args = ap.parse_args()
     if args.summarise is not None:
         rows = [json.loads(line) for p in args.summarise for line in p.read_text().splitlines()
                 if line.startswith("{")]
         summary, md = summarise(rows, args.note)
-        (HERE / "design_sweep.json").write_text(json.dumps({"summary": summary, "rows": rows},
+        (HERE / f"{args.out}.json").write_text(json.dumps({"summary": summary, "rows": rows},
                                                            indent=1) + "\n")
-        (HERE / "design_sweep.md").write_text(md)
+        (HERE / f"{args.out}.md").write_text(md)
         print(md.split("| family |")[0])
         return 0
     from mocap.simulate.families import FAMILIES
@@ -268,6 +272,9 @@ def main() -> int:
     block = [(fam, eff, form, int(seed)) for seed in args.seeds.split(",") for eff, form in effs
              for fam in fams]
     order = np.random.default_rng(15).permutation(len(block)) if args.shuffle else range(len(block))
+    done = {(r["family"], r["effect"], r["form"], int(r["seed"])) for p in args.skip
+            for r in map(json.loads, p.read_text().splitlines()) if "error" not in r}
+    order = [j for j in order if block[j] not in done]
     with tempfile.TemporaryDirectory() as tmp:
         for k, j in enumerate(order):
             fam, eff, form, seed = block[j]
