@@ -13,7 +13,8 @@ Targets (issue #15): hidden set named exactly in >= 95 % of cases; something nam
 hidden effect in <= 5 %; each named parameter within 20 % of the truth; final held-out RMS
 <= 1.5 x the noise floor (aim 1.2).
 
-The cases run in a seeded shuffled order, so a partial run samples every family and effect.
+The cases run in a seeded shuffled order (each seed's own order, the seeds taken in turn), so a
+partial run samples every family, effect and form; ``--skip`` resumes a sweep across sittings.
 Shards run side by side (one process each) and append JSON lines; ``--summarise`` merges them.
 
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 0/2 > /tmp/sweep0.jsonl
@@ -49,12 +50,13 @@ PARAM = {"lag": "tau_s", "deadtime": "delay_s", "backlash": "halfwidth", "coupli
 def cases(seeds) -> list[tuple[str, str, int]]:
     from mocap.simulate.families import FAMILIES
 
-    out = []
+    per_seed = []
     for seed in seeds:
         block = [(fam, eff, seed) for fam in FAMILIES for eff in EFFECTS]
         order = np.random.default_rng(1000 + seed).permutation(len(block))
-        out += [block[i] for i in order]
-    return out
+        per_seed.append([block[i] for i in order])
+    # the seeds' shuffled orders taken in turn: a partial run samples both forms of every effect
+    return [c for row in zip(*per_seed) for c in row]
 
 
 def truth_parameters(truth: dict) -> dict[str, float]:
@@ -251,7 +253,12 @@ def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
         by_fam[r["family"]][0] += r["exact"]
         by_fam[r["family"]][1] += 1
     pct = lambda a, b: f"{100 * a / b:.0f} %" if b else "-"  # noqa: E731
-    summary = {"cases_run": n, "cases_failed": len(failed), "cases_planned": planned, "exact": exact,
+    codes: dict[str, int] = {}
+    for r in rows:
+        if "code" in r:
+            codes[r["code"]] = codes.get(r["code"], 0) + 1
+    cpu = [r["cpu_s"] for r in rows if "cpu_s" in r]
+    summary = {"codes": codes, "cases_run": n, "cases_failed": len(failed), "cases_planned": planned, "exact": exact,
                "false_naming_none": false, "none_cases": len(none),
                "parameters_within_20pct": within, "parameters_within_20pct_or_interval": within_iv,
                "parameters_scored": len(errs),
@@ -270,6 +277,9 @@ def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
          f"**Cases run: {n}" + (f" of {planned} planned" if planned else "") + "**" +
          (" (a partial run: the cases ran in a seeded shuffled order, so they sample every "
           "family and effect)" if planned and n < planned else "") + ".", "",
+         *(["Code: " + ", ".join(f"{c} ({k} cases)" for c, k in sorted(codes.items())) + "; "
+            f"CPU {sum(cpu) / 3600:.1f} h over {len(cpu)} timed cases "
+            f"(median {np.median(cpu):.0f} s a case).", ""] if codes else []),
          "| target | result |", "|---|---|",
          f"| hidden set named exactly (>= 95 %) | {exact} / {n} = {pct(exact, n)} |",
          f"| something named with none hidden (<= 5 %) | {false} / {len(none)} = {pct(false, len(none))} |",
@@ -299,6 +309,22 @@ def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
     return summary, "\n".join(L) + "\n"
 
 
+def code_version() -> str:
+    """The commit the cases run on, with "+dirty" when the package's sources differ from it (a
+    sweep resumed across sittings must say which code each row comes from)."""
+    import subprocess
+
+    root = HERE.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, text=True,
+                              capture_output=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "mocap", "analysis", "calib"],
+                               cwd=root, text=True, capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="1,2,3")
@@ -311,6 +337,9 @@ def main() -> int:
     ap.add_argument("--local", action=argparse.BooleanOptionalAction, default=None,
                     help="name on the local criterion too, or not (DiscrepancySettings.local; "
                     "default: the library's default)")
+    ap.add_argument("--skip", nargs="*", type=Path, default=[],
+                    help="JSON-lines files of earlier runs: their cases are not run again (a sweep "
+                    "resumed across sittings; the rows say which commit ran them)")
     ap.add_argument("--out", default="cross_family_sweep",
                     help="file stem of the summary in benchmarks/ (.md and .json)")
     args = ap.parse_args()
@@ -331,15 +360,24 @@ def main() -> int:
         print(md.split("| family |")[0])
         return 0
     i, n = (int(v) for v in args.shard.split("/"))
+    done = {(r["family"], r["effect"], int(r["seed"]), r["form"]) for p in args.skip
+            for r in map(json.loads, p.read_text().splitlines()) if "error" not in r}
+    todo = [(fam, eff, seed, form) for fam, eff, seed, form in
+            (chosen or [(*c, None) for c in cases(seeds)])
+            if (fam, eff, seed, form or seed_form(seed)) not in done]
+    code = code_version()
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (fam, eff, seed, form) in enumerate(chosen or [(*c, None) for c in cases(seeds)]):
+        for k, (fam, eff, seed, form) in enumerate(todo):
             if k % n != i:
                 continue
+            cpu0 = time.process_time()
             try:
                 row = run_case(fam, eff, seed, Path(tmp), args.local, form)
             except Exception as exc:  # a failed case is a result too
                 row = {"family": fam, "effect": eff, "seed": seed, "form": form or seed_form(seed),
                        "error": repr(exc)}
+            row["cpu_s"] = round(time.process_time() - cpu0, 1)
+            row["code"] = code
             print(json.dumps(row), flush=True)
             shutil.rmtree(Path(tmp) / f"{fam}_{eff.replace(',', '_')}_{seed}", ignore_errors=True)
     return 0
