@@ -401,6 +401,8 @@ class ModelDesign:
     target: np.ndarray
     cost: float
     seconds: float
+    reference: "Reference | None" = None  # the reference designed for (hold level included)
+    hold_level: float | None = None  # the hold :func:`design_plan` chose (None: not searched)
 
 
 def _candidates(center: int | None) -> np.ndarray:
@@ -548,7 +550,80 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
               for n, du in enumerate(dus)]
     rows = pd.concat(frames, ignore_index=True)
     return ModelDesign(rows, pts + delay, pred.reshape(-1, M), pb.target.reshape(-1, M), cost,
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, ref)
+
+
+# hold levels tried by design_plan, in units of hold_lift() (1.5 was tried too: on the straight,
+# bowed and Preisach faces of benchmarks/design_sweep_session18_hold.md the model never chose it)
+HOLD_LIFTS = (0.0, 0.5, 1.0)
+
+
+def _hold_frames(ref: Reference) -> np.ndarray:
+    """(len(ref.t_s),) bool: the plan's hold, between the end of the rise and the fall."""
+    return (ref.t_s >= ref.rise[1]) & (ref.t_s < ref.fall[0])
+
+
+def hold_lift(ref: Reference, band: float = 0.95) -> float:
+    """How far the hold would have to rise for the plan's own frames within 5 % of its top to
+    average 1: sum(1 - ideal) over the frames outside the hold where ideal >= ``band``, per hold
+    frame (0 without a hold).
+
+    The evaluation divides each marker by its plateau level, the mean of its displacement over
+    the frames within 5 % of its largest (:func:`mocap.analysis.displacement.plateau_level`),
+    and those take in the top of the rise and the start of the fall as well as the hold: a
+    marker that follows the plan exactly reads above 1 on the hold and above the plan on the
+    rise (+0.0026 over the second half of plan A's rise on a face whose markers move on straight
+    lines). A hold above 1 brings the normaliser back up; how far is right depends on the face's
+    paths (on a bowed path |d| may pass its final value during the rise and the plateau already
+    reads high), so :func:`design_plan` chooses it on the model's prediction."""
+    hold = _hold_frames(ref)
+    if not hold.any():
+        return 0.0
+    top = ~hold & (ref.ideal >= band)
+    return float(np.sum(1.0 - ref.ideal[top]) / hold.sum())
+
+
+def with_hold(ref: Reference, level: float) -> Reference:
+    """``ref`` with its hold at ``level`` (the rest unchanged; per-marker references too)."""
+    hold = _hold_frames(ref)
+    r = ref.r.copy()
+    r[hold] = level
+    return Reference(ref.t_s, r, ref.ideal, ref.rise, ref.fall, ref.start_s, ref.end_s, ref.label)
+
+
+def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail_s: float = 0.25,
+                trial: int = 1, **kwargs) -> ModelDesign:
+    """:func:`design_commands` for a plan with a hold, the hold's level chosen on the model.
+
+    For each lift f in ``lifts`` the commands are designed for the plan with its hold at
+    1 + f * :func:`hold_lift`, the model predicts the take (``ref.end_s + tail_s`` long, the
+    evaluated take), and the design whose prediction the evaluation scores best against the plan
+    (:func:`evaluate_design`, 0.5 (forward + backward)) is returned, with ``hold_level`` and the
+    ``reference`` it was designed for (a refinement starts from that reference). The choice is
+    the model's: on a face whose markers move on straight lines it lifts the hold (plan A on the
+    PI straight face: 0.335 -> 0.322 of the paper method's RMS played), on a bowed one it keeps
+    it at 1 (plan B on the PI bowed face: 0.058 with the hold at 1, 0.085 lifted by 1). A plan
+    without a hold, or ``lifts=(0,)``, is :func:`design_commands` itself.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    a = hold_lift(ref)
+    levels = sorted({1.0 + float(f) * a for f in lifts}) if a > 0 else [None]
+    if len(levels) == 1:
+        r = ref if levels[0] is None else with_hold(ref, levels[0])
+        return design_commands(model, r, dus, trial=trial, **kwargs)
+    n = int(round((ref.end_s + tail_s) * model.fps))
+    best = None
+    for level in levels:
+        des = design_commands(model, with_hold(ref, level), dus, trial=trial, **kwargs)
+        ev = evaluate_design(model.predict(des.rows, n, trial), des.rows, model.fps, ref)
+        score = 0.5 * (ev.rms_forward + ev.rms_backward)
+        if best is None or score < best[0]:
+            best = (score, level, des)
+    from dataclasses import replace
+
+    return replace(best[2], hold_level=best[1], seconds=time.perf_counter() - t0)
 
 
 # ----------------------------------------------------------------------------------------------

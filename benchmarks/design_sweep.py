@@ -55,6 +55,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
     from mocap.analysis.model_design import (
         command_times,
         design_commands,
+        design_plan,
         evaluate_design,
         plan_reference,
         refined_reference,
@@ -91,7 +92,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         ref = plan_reference(plan, timing)
         paper = paper_design(plan, responses, timing, DUS)
         t0 = time.process_time()
-        des = design_commands(model, ref, DUS, step_s=timing.step_s, fall_start_s=fall)
+        des = design_plan(model, ref, DUS, step_s=timing.step_s, fall_start_s=fall)
         t_design += time.process_time() - t0
         n_design += 1
         res = {}
@@ -115,7 +116,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
             X, ev_m, evn_m = play(des.rows)
             p = rms(ev_p)
             history = [rms(ev_m)]
-            ref_k, rows_k = ref, des.rows
+            ref_k, rows_k = des.reference, des.rows
             for k in range(1, plays + 1):
                 if history[-1] <= p / 5:
                     break
@@ -139,6 +140,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
             res["floor"] = {"rms": round(fl.rms, 5), "set": round(fl.set_level, 4),
                             "ratio": round(fl.rms / res["clean"]["paper"], 4)}
         out["plans"][plan] = res
+        out.setdefault("hold", {})[plan] = round(des.hold_level or 1.0, 5)
     out["cpu_design_s"] = round(t_design / max(n_design, 1), 2)
     return out
 

@@ -17,8 +17,10 @@ from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design, paper_d
 from mocap.analysis.model_design import (
     command_times,
     design_commands,
+    design_plan,
     evaluate_design,
     file_reference,
+    hold_lift,
     marker_weights,
     plan_reference,
     plants,
@@ -47,8 +49,8 @@ def rms(ev) -> float:
 class Face:
     """A simulated session, its identified model, its true face and the paper's responses."""
 
-    def __init__(self, root, effect, effects):
-        make_session(root, effect=effect, **FACE)
+    def __init__(self, root, effect, effects, **face):
+        make_session(root, effect=effect, **{**FACE, **face})
         self.root = root
         self.model, _ = identify_model(root / "session", effects)
         self.cfg, self.face = virtual_face_of(root / "session")
@@ -71,9 +73,13 @@ def lag_face(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def plain_face(tmp_path_factory):
+    """Nothing hidden, on a base the model does not share: Preisach hysteresis (a non-uniform
+    relay density), straight marker paths, per-marker scatter and per-take bias shifts; the model
+    is the workflow's base (hysteresis, per-marker paths, per-take shifts)."""
     from mocap.simulate.effects import HiddenEffect
 
-    return Face(tmp_path_factory.mktemp("plain_face"), HiddenEffect(), ["hysteresis"])
+    return Face(tmp_path_factory.mktemp("plain_face"), HiddenEffect(),
+                ["hysteresis", "curvature", "takeshift"], face_family="preisach-straight")
 
 
 def assert_valid_command_file(rows: pd.DataFrame, step_s: float, dus=DUS):
@@ -166,7 +172,7 @@ def lag_plans(lag_face):
     for plan in PLAN_NAMES:
         ref = plan_reference(plan, TIMING)
         _, ev_p = lag_face.play(paper_design(plan, lag_face.responses, TIMING, DUS), ref)
-        des = design_commands(lag_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+        des = design_plan(lag_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
         X, ev_m = lag_face.play(des.rows, ref)
         out[plan] = (ref, ev_p, des, X, ev_m)
     return out
@@ -190,7 +196,7 @@ def test_refinement_converges_to_a_fifth_of_the_paper(lag_face, lag_plans):
     assert sorted(lag_plans) == sorted(PLAN_NAMES)
     for plan, (ref0, ev_p, des, X, ev) in lag_plans.items():
         target = rms(ev_p) / 5
-        ref, history = ref0, [rms(ev)]
+        ref, history = des.reference, [rms(ev)]  # the first design's hold
         for _ in range(5):
             if history[-1] <= target:
                 break
@@ -204,15 +210,50 @@ def test_refinement_converges_to_a_fifth_of_the_paper(lag_face, lag_plans):
         assert history[-1] <= target, (plan, history, rms(ev_p))
 
 
-def test_model_design_no_worse_on_a_face_without_effects(plain_face):
-    """Without any effect beyond the paper's model the model-based design is no worse."""
-    assert plain_face.model.effect_names == ["hysteresis"]
+@pytest.fixture(scope="module")
+def plain_plans(plain_face):
+    """Plans A-E on the plain face: (reference, paper evaluation, the model's design with its
+    hold chosen on the model, its evaluation, the design with the hold at 1, its evaluation)."""
+    out = {}
     for plan in PLAN_NAMES:
         ref = plan_reference(plan, TIMING)
         _, ev_p = plain_face.play(paper_design(plan, plain_face.responses, TIMING, DUS), ref)
-        des = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
-        _, ev_m = plain_face.play(des.rows, ref)
-        assert rms(ev_m) <= rms(ev_p), (plan, rms(ev_m), rms(ev_p))
+        des = design_plan(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+        flat = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s,
+                               fall_start_s=FALL_S)
+        out[plan] = (ref, ev_p, des, plain_face.play(des.rows, ref)[1], flat,
+                     plain_face.play(flat.rows, ref)[1])
+    return out
+
+
+def test_model_design_beats_the_paper_on_a_face_without_effects(plain_face, plain_plans):
+    """Nothing hidden, on a base family the model does not share: the model's design tracks
+    plans B-E at most a third of the paper method's RMS on the true face, the paper's sigmoids
+    at their best (the true face's). Plan A's fast rise meets the command grid's floor (the
+    staircase of rows every 16 ms on a face that responds at once): it is held to twice that
+    floor instead (test_no_command_file_beats_the_tracking_floor_on_a_face_that_responds_at_once)."""
+    assert not {"lag", "deadtime", "backlash"} & set(plain_face.model.effect_names)
+    ratios = {plan: rms(ev_m) / rms(ev_p) for plan, (_, ev_p, _, ev_m, _, _) in plain_plans.items()}
+    for plan, (_, _, des, _, _, _) in plain_plans.items():
+        assert_valid_command_file(des.rows, TIMING.step_s)
+        assert plan == "A" or ratios[plan] <= 1 / 3, ratios
+
+
+def test_hold_level_is_chosen_on_the_model_of_the_face(plain_plans):
+    """The evaluation divides each marker by the mean of its displacement over the frames within
+    5 % of its largest, which takes in the top of the rise: on straight marker paths a design
+    that holds at 1 reads high on the hold and on the upper rise. The model's prediction lifts
+    the hold there (by about hold_lift(): 0.0075 for plans A and E, 0.0084 for B and D), and the
+    lifted design tracks better on the true face, most where the rise ends slowly (B, D)."""
+    for plan, (ref, _, des, ev_m, flat, ev_flat) in plain_plans.items():
+        assert des.hold_level is not None and flat.hold_level is None
+        assert des.hold_level <= 1 + 1.5 * hold_lift(ref) + 1e-12
+        held = des.reference.at(np.array([TIMING.start_s + TIMING.duration_s + 0.1]), 1)[0, 0]
+        assert held == pytest.approx(des.hold_level)
+        assert rms(ev_m) <= rms(ev_flat) * 1.01, (plan, rms(ev_m), rms(ev_flat))
+        if plan in "BD":
+            assert des.hold_level > 1.0 + 0.5 * hold_lift(ref) - 1e-12, (plan, des.hold_level)
+            assert rms(ev_m) <= 0.9 * rms(ev_flat), (plan, rms(ev_m), rms(ev_flat))
 
 
 def test_tracking_floor_is_the_best_staircase_on_the_grid():
@@ -256,14 +297,14 @@ def test_tracking_floor_is_the_best_staircase_on_the_grid():
         assert 0.5 * sum(score(other)) >= fl.rms
 
 
-def test_no_command_file_beats_the_tracking_floor_on_a_face_that_responds_at_once(plain_face):
+def test_no_command_file_beats_the_tracking_floor_on_a_face_that_responds_at_once(plain_face,
+                                                                                  plain_plans):
     """On the plain face (nothing hidden: no actuator dynamics) the paper's design of plan A,
     the model's and commands scattered around them all track no better than the floor of their
     command grid, with the set read on those plays (they all end at command 0); the model's
     design comes within a factor 2 of it."""
     rng = np.random.default_rng(1)
-    ref = plan_reference("A", TIMING)
-    des = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+    ref, des = plain_plans["A"][0], plain_plans["A"][2]
     played = []
     for rows in (paper_design("A", plain_face.responses, TIMING, DUS), des.rows):
         c = rows["command"].to_numpy()
@@ -445,10 +486,15 @@ def test_model_design_on_a_bouc_wen_bowed_face_with_an_alt_lag(tmp_path):
                                 props.loc[d, "alpha_bwd"], props.loc[d, "beta_bwd"]) for d in DUS}
     for plan in "BCDE":
         ref = plan_reference(plan, TIMING)
-        des = design_commands(model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
+        des = design_plan(model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
         assert_valid_command_file(des.rows, TIMING.step_s)
         paper = paper_design(plan, responses, TIMING, DUS)
         ev_p = evaluate_design(play_virtual(cfg, face, paper, ref.end_s + 0.25), paper, cfg.fps, ref)
         ev_m = evaluate_design(play_virtual(cfg, face, des.rows, ref.end_s + 0.25), des.rows,
                                cfg.fps, ref)
         assert rms(ev_m) <= rms(ev_p) / 3, (plan, rms(ev_m), rms(ev_p))
+        # bowed paths: the plateau already reads high, the model keeps the hold near 1 (a lift
+        # of hold_lift() made plan B 45 % worse on the PI bowed face)
+        flat = design_commands(model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S).rows
+        ev_f = evaluate_design(play_virtual(cfg, face, flat, ref.end_s + 0.25), flat, cfg.fps, ref)
+        assert rms(ev_m) <= rms(ev_f) * 1.02, (plan, des.hold_level, rms(ev_m), rms(ev_f))

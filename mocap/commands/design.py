@@ -194,6 +194,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
 
     from mocap.analysis.model_design import (
         design_commands,
+        design_plan,
         file_reference,
         marker_weights,
         plan_reference,
@@ -249,10 +250,16 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
         say(f"refining from take {take.name} ({'reference ' + str(args.reference) if previous else 'model prediction'} + "
             f"gain {args.gain} x its tracking error)")
     t1 = time.perf_counter()
-    des = design_commands(model, design_ref, dus, step_s=timing.step_s, fall_start_s=fall,
-                          weights=weights, headroom=args.headroom, sweeps=args.sweeps)
+    # a first design chooses its hold level on the model's prediction (design_plan); a
+    # refinement keeps the hold of the reference it refines
+    design = design_commands if take is not None else design_plan
+    des = design(model, design_ref, dus, step_s=timing.step_s, fall_start_s=fall,
+                 weights=weights, headroom=args.headroom, sweeps=args.sweeps)
     write_csv(des.rows, args.out, decimals=6)
-    write_reference(reference_path(args.out), design_ref, model.marker_names)
+    write_reference(reference_path(args.out), des.reference, model.marker_names)
+    if des.hold_level is not None and des.hold_level != 1.0:
+        say(f"hold at {des.hold_level:.4f} of the full motion (chosen on the model's prediction "
+            f"of the take: the evaluation's plateau takes in the top of the rise)")
     print(f"plan {args.plan} on DUs {dus} by the face model: {len(des.rows)} command rows over "
           f"{float(des.rows.time_s.max()):.2f} s written to {args.out} (design {time.perf_counter() - t1:.1f} s, "
           f"predicted tracking RMS {des.cost ** 0.5:.4f})")
