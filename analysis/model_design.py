@@ -43,6 +43,13 @@ is the clip of its state at the step's start; a dead time L shifts the reference
 through the search; hysteresis under arbitrary reversals is the model's own. Python loops run
 over command steps and DUs only; everything per candidate, point and marker is vectorised.
 
+The hold (:func:`design_plan`): the evaluation normalises each marker by its plateau, the mean
+of its displacement over the frames within 5 % of its largest, and those frames include the top
+of the rise and the start of the fall, so a take that follows the plan exactly reads above it
+on the hold and the upper rise. Where that matters depends on the marker paths (on a bowed path
+|d| can pass its final value during the rise), so a plan's first design is made for a few hold
+levels and the one whose take the model predicts to score best is kept.
+
 Iterative refinement (:func:`refined_reference`) is reference-adaptation iterative learning
 control: a played take's tracking error updates the reference the model tracks,
 r_{k+1}(t) = r_k(t) + gain sum_m w'_m (P(t) - delta_m(t)) over the plan's rise and fall, with
@@ -553,8 +560,8 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
                        time.perf_counter() - t0, ref)
 
 
-# hold levels tried by design_plan, in units of hold_lift() (1.5 was tried too: on the straight,
-# bowed and Preisach faces of benchmarks/design_sweep_session18_hold.md the model never chose it)
+# hold levels tried by design_plan, in units of hold_lift() (1.5 was tried too: on PI straight,
+# Preisach straight and PI bowed faces, plans A-E, the model never chose it)
 HOLD_LIFTS = (0.0, 0.5, 1.0)
 
 
