@@ -410,6 +410,18 @@ class ModelDesign:
     seconds: float
     reference: "Reference | None" = None  # the reference designed for (hold level included)
     hold_level: float | None = None  # the hold :func:`design_plan` chose (None: not searched)
+    tried: tuple["HoldTrial", ...] = ()  # every hold level design_plan designed for, in order
+
+
+@dataclass(frozen=True)
+class HoldTrial:
+    """One hold level :func:`design_plan` designed for: the level (1 = the plan's own hold),
+    the RMS the evaluation gives the model's predicted take (0.5 (forward + backward), the
+    normalised displacement's units) and the command rows."""
+
+    level: float
+    predicted_rms: float
+    rows: pd.DataFrame
 
 
 def _candidates(center: int | None) -> np.ndarray:
@@ -431,6 +443,7 @@ class _Problem:
     w: np.ndarray  # (M,)
     inv_scale: np.ndarray  # (M,)
     spread_weight: float
+    t_s: np.ndarray  # (n_rows * J,) the cost points on the plan's clock (dead time added), s
 
     def cost(self, nd: np.ndarray, tgt: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Cost (C,) of normalised displacements nd (C, Q, M) against tgt (Q, M): the squared
@@ -446,17 +459,37 @@ class _Problem:
         return np.linalg.norm(d, axis=-1) * self.inv_scale
 
 
-def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) -> tuple[np.ndarray, np.ndarray]:
+def _advance(pb: _Problem, states: list[PlantState], i: int, commands: np.ndarray) -> np.ndarray:
+    """Step every DU's state over row i with ``commands`` (N,); returns the predicted
+    normalised displacement over the row (J, M). ``states`` is updated in place."""
+    ys_step = []
+    for n, p in enumerate(pb.plist):
+        y1, (a, b, pl, d) = simulate_steps(p, states[n], np.array([commands[n]]), pb.dur[i:i + 1])
+        states[n] = PlantState(float(a[0]), float(b[0]), pl[0], float(d[0]))
+        ys_step.append(y1[0])
+    return pb.normalised(ys_step)
+
+
+def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int,
+           prefix: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pass over the steps. Without ``prev`` (the first pass) a candidate is held over
     ``preview`` steps; with it, step i's candidate is followed by ``prev``'s commands over the
-    next ``horizon - 1`` steps (Gauss-Seidel on the whole tracking cost). Returns the commands
-    (n_rows, N) and the predicted normalised displacement (n_rows, J, M)."""
+    next ``horizon - 1`` steps (Gauss-Seidel on the whole tracking cost). ``prefix`` (k, N): the
+    first pass's commands of its first k rows, known already (a causal pass chooses them from
+    the reference's first k + preview - 1 rows alone): they are replayed, not searched. Returns
+    the commands (n_rows, N) and the predicted normalised displacement (n_rows, J, M)."""
     n_rows, J, M = pb.target.shape
     N = len(pb.plist)
     states = [rest_state(p) for p in pb.plist]
     chosen = np.zeros((n_rows, N), int) if prev is None else prev.copy()
     pred = np.zeros((n_rows, J, M))
-    for i in range(n_rows):
+    k = 0
+    if prefix is not None and prev is None:
+        k = min(len(prefix), n_rows)
+        chosen[:k] = prefix[:k]
+        for i in range(k):
+            pred[i] = _advance(pb, states, i, chosen[i])
+    for i in range(k, n_rows):
         H = (preview if prev is None else horizon)
         h = slice(i, min(i + H, n_rows))
         nh = h.stop - h.start
@@ -485,13 +518,7 @@ def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int) ->
                 cost = pb.cost(nd, tgt, okh)
                 best = int(cand[int(np.argmin(cost))])
             chosen[i, n] = best
-        ys_step = []
-        for n, p in enumerate(pb.plist):
-            y1, (a, b, pl, d) = simulate_steps(p, states[n], np.array([chosen[i, n]]),
-                                               pb.dur[i:i + 1])
-            states[n] = PlantState(float(a[0]), float(b[0]), pl[0], float(d[0]))
-            ys_step.append(y1[0])
-        pred[i] = pb.normalised(ys_step)
+        pred[i] = _advance(pb, states, i, chosen[i])
     return chosen, pred
 
 
@@ -526,6 +553,15 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
     import time
 
     t0 = time.perf_counter()
+    pb, times = _problem(model, ref, dus, step_s, fall_start_s, weights, headroom, spread_weight,
+                         trial)
+    return _design(pb, times, ref, horizon, preview, sweeps, None, t0)
+
+
+def _problem(model: FaceModel, ref: Reference, dus, step_s: float, fall_start_s: float | None,
+             weights: np.ndarray | None, headroom: float, spread_weight: float, trial: int
+             ) -> tuple[_Problem, np.ndarray]:
+    """The search problem of :func:`design_commands` and its command times (n_rows + 1,) s."""
     dus = [int(d) for d in dus]
     plist = plants(model, dus, trial)
     M = len(model.marker_names)
@@ -546,17 +582,25 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
     target = ref.at(pts + delay, M).reshape(n_rows, J, M)
     ok = np.isfinite(target)
     pb = _Problem(model, plist, dus, dur, np.where(ok, target, 0.0), ok, w, inv_scale,
-                  spread_weight)
-    chosen, pred = _sweep(pb, None, horizon, preview)
+                  spread_weight, pts + delay)
+    return pb, times
+
+
+def _design(pb: _Problem, times: np.ndarray, ref: Reference, horizon: int, preview: int,
+            sweeps: int, prefix: np.ndarray | None, t0: float) -> ModelDesign:
+    import time
+
+    n_rows, J, M = pb.target.shape
+    chosen, pred = _sweep(pb, None, horizon, preview, prefix)
     for _ in range(sweeps):
         chosen, pred = _sweep(pb, chosen, horizon, preview)
-    cost = float(pb.cost(pred.reshape(1, -1, M), pb.target.reshape(-1, M), ok.reshape(-1, M))[0]
-                 / max(n_rows * J, 1))
+    cost = float(pb.cost(pred.reshape(1, -1, M), pb.target.reshape(-1, M),
+                         pb.ok.reshape(-1, M))[0] / max(n_rows * J, 1))
     frames = [pd.DataFrame({"time_s": np.round(times, 9), "du": du,
                             "command": np.concatenate([[0], chosen[:, n]]).astype(np.int64)})
-              for n, du in enumerate(dus)]
+              for n, du in enumerate(pb.dus)]
     rows = pd.concat(frames, ignore_index=True)
-    return ModelDesign(rows, pts + delay, pred.reshape(-1, M), pb.target.reshape(-1, M), cost,
+    return ModelDesign(rows, pb.t_s, pred.reshape(-1, M), pb.target.reshape(-1, M), cost,
                        time.perf_counter() - t0, ref)
 
 
@@ -620,17 +664,46 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
     if len(levels) == 1:
         r = ref if levels[0] is None else with_hold(ref, levels[0])
         return design_commands(model, r, dus, trial=trial, **kwargs)
+    import inspect
+
+    opts = {k: v.default for k, v in inspect.signature(design_commands).parameters.items()
+            if v.kind is inspect.Parameter.KEYWORD_ONLY and k != "trial"}
+    unknown = set(kwargs) - set(opts)
+    if unknown:
+        raise TypeError(f"design_plan: unexpected keyword arguments {sorted(unknown)}")
+    opts.update(kwargs)
     n = int(round((ref.end_s + tail_s) * model.fps))
-    best = None
+    first, tried, best = None, [], None
     for level in levels:
-        des = design_commands(model, with_hold(ref, level), dus, trial=trial, **kwargs)
+        r = with_hold(ref, level)
+        pb, times = _problem(model, r, dus, opts["step_s"], opts["fall_start_s"], opts["weights"],
+                             opts["headroom"], opts["spread_weight"], trial)
+        prefix = None
+        if first is not None:
+            # the causal pass chooses row i's commands from rows i .. i + preview - 1 of the
+            # reference alone: the rows before the first that the hold's level changes are the
+            # first level's (the rise), replayed instead of searched
+            differs = np.any((pb.target != first[0].target) | (pb.ok != first[0].ok), axis=(1, 2))
+            k = int(np.argmax(differs)) if differs.any() else differs.size
+            prefix = first[1][:max(k - opts["preview"] + 1, 0)]
+        des = _design(pb, times, r, opts["horizon"], opts["preview"], opts["sweeps"], prefix,
+                      time.perf_counter())
+        if first is None:
+            first = (pb, _commands_of(des.rows, pb.dus))
         ev = evaluate_design(model.predict(des.rows, n, trial), des.rows, model.fps, ref)
         score = 0.5 * (ev.rms_forward + ev.rms_backward)
+        tried.append(HoldTrial(level, score, des.rows))
         if best is None or score < best[0]:
             best = (score, level, des)
     from dataclasses import replace
 
-    return replace(best[2], hold_level=best[1], seconds=time.perf_counter() - t0)
+    return replace(best[2], hold_level=best[1], tried=tuple(tried),
+                   seconds=time.perf_counter() - t0)
+
+
+def _commands_of(rows: pd.DataFrame, dus) -> np.ndarray:
+    """(n_rows, N) the searched commands of a design's rows (its first row, 0 at t = 0, left out)."""
+    return np.stack([rows.loc[rows["du"] == du, "command"].to_numpy()[1:] for du in dus], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------

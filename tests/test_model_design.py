@@ -17,6 +17,7 @@ from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design, paper_d
 from mocap.analysis.model_design import (
     command_times,
     design_commands,
+    HOLD_LIFTS,
     design_plan,
     evaluate_design,
     file_reference,
@@ -29,6 +30,7 @@ from mocap.analysis.model_design import (
     set_at_rest,
     simulate_steps,
     tracking_floor,
+    with_hold,
 )
 from mocap.analysis.plans import PLAN_NAMES
 from conftest import make_session
@@ -219,11 +221,26 @@ def plain_plans(plain_face):
         ref = plan_reference(plan, TIMING)
         _, ev_p = plain_face.play(paper_design(plan, plain_face.responses, TIMING, DUS), ref)
         des = design_plan(plain_face.model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S)
-        flat = design_commands(plain_face.model, ref, DUS, step_s=TIMING.step_s,
-                               fall_start_s=FALL_S)
+        flat = des.tried[0]  # the hold at 1: what design_commands makes of the plan itself
         out[plan] = (ref, ev_p, des, plain_face.play(des.rows, ref)[1], flat,
                      plain_face.play(flat.rows, ref)[1])
     return out
+
+
+def test_design_plan_tries_each_hold_as_design_commands_would(lag_face, lag_plans):
+    """design_plan replays the rise it shares between hold levels instead of searching it again:
+    each level's commands are exactly design_commands' for the plan with that hold, and the one
+    kept is the one the model predicts to score best."""
+    ref, _, des, _, _ = lag_plans["C"]
+    levels = [t.level for t in des.tried]
+    assert levels == sorted(levels) and levels[0] == 1.0 and len(levels) == len(HOLD_LIFTS)
+    assert des.hold_level == min(des.tried, key=lambda t: t.predicted_rms).level
+    top = des.tried[-1]
+    alone = design_commands(lag_face.model, with_hold(ref, top.level), DUS, step_s=TIMING.step_s,
+                            fall_start_s=FALL_S)
+    pd.testing.assert_frame_equal(alone.rows, top.rows)
+    kept = next(t for t in des.tried if t.level == des.hold_level)
+    pd.testing.assert_frame_equal(des.rows, kept.rows)
 
 
 def test_model_design_beats_the_paper_on_a_face_without_effects(plain_face, plain_plans):
@@ -246,7 +263,7 @@ def test_hold_level_is_chosen_on_the_model_of_the_face(plain_plans):
     the hold there (by about hold_lift(): 0.0075 for plans A and E, 0.0084 for B and D), and the
     lifted design tracks better on the true face, most where the rise ends slowly (B, D)."""
     for plan, (ref, _, des, ev_m, flat, ev_flat) in plain_plans.items():
-        assert des.hold_level is not None and flat.hold_level is None
+        assert des.hold_level is not None and flat.level == 1.0
         assert des.hold_level <= 1 + 1.5 * hold_lift(ref) + 1e-12
         held = des.reference.at(np.array([TIMING.start_s + TIMING.duration_s + 0.1]), 1)[0, 0]
         assert held == pytest.approx(des.hold_level)
@@ -495,6 +512,7 @@ def test_model_design_on_a_bouc_wen_bowed_face_with_an_alt_lag(tmp_path):
         assert rms(ev_m) <= rms(ev_p) / 3, (plan, rms(ev_m), rms(ev_p))
         # bowed paths: the plateau already reads high, the model keeps the hold near 1 (a lift
         # of hold_lift() made plan B 45 % worse on the PI bowed face)
-        flat = design_commands(model, ref, DUS, step_s=TIMING.step_s, fall_start_s=FALL_S).rows
+        flat = des.tried[0].rows  # the plan's own hold, designed on the way
+        assert des.tried[0].level == 1.0
         ev_f = evaluate_design(play_virtual(cfg, face, flat, ref.end_s + 0.25), flat, cfg.fps, ref)
         assert rms(ev_m) <= rms(ev_f) * 1.02, (plan, des.hold_level, rms(ev_m), rms(ev_f))
