@@ -46,6 +46,12 @@ def save(fig, path) -> Path:
     return Path(path)
 
 
+def draw_and_save(path, draw, args) -> Path:
+    """``save(draw(*args), path)``: one figure drawn and written (a module-level function, so a
+    worker process can be handed it)."""
+    return save(draw(*args), path)
+
+
 def displacement_field(du: int, name: str, rest_mm: np.ndarray, d_mm: np.ndarray,
                        keep: np.ndarray, scale: float | None = None, *, ax=None) -> Figure:
     """Arrows of the displacement at full command on the xy plane over a heat map of length."""

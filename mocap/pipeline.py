@@ -211,9 +211,9 @@ class RunWriters:
     """The run's output writers, from the outputs layer (:data:`mocap.run_outputs.WRITERS`);
     None: not written. Each returns the files it wrote.
 
-    analysis_figures(out, session, reconstruction, trials, analysis, bars) -> list[Path]
+    analysis_figures(out, session, reconstruction, trials, analysis, bars, jobs) -> list[Path]
         the analyses' figures into ``out/figures`` (``analysis``: ``SessionAnalysis``;
-        ``bars``: as :func:`run`'s)
+        ``bars``: as :func:`run`'s; ``jobs``: processes it may use, ``RunSettings.jobs``)
     audit_figures(out, audit, reconstruction, calibration) -> list[Path]
         the audit's figures into ``out/figures`` (``calibration`` None for 3D sessions)
     recording(path, result) -> Path
@@ -481,14 +481,15 @@ def analyze(session: Session, reconstruction: Reconstruction, settings: RunSetti
 # --- outputs ---------------------------------------------------------------------------------
 
 def write_analysis(out: Path, session: Session, recon: Reconstruction, trials: Trials, res,
-                   bars: bool | None = False, figures=None) -> list[Path]:
+                   bars: bool | None = False, figures=None, jobs: int = 1) -> list[Path]:
     """properties.csv, linearity.csv, marker_properties.csv and (``figures``: a
-    :attr:`RunWriters.analysis_figures`) the figures; the files."""
+    :attr:`RunWriters.analysis_figures`, drawn on up to ``jobs`` processes) the figures; the
+    files."""
     files = [write_csv(res.properties, out / "properties.csv"),
              write_csv(res.linearity, out / "linearity.csv"),
              write_csv(res.marker_properties, out / "marker_properties.csv")]
     if figures is not None:
-        files += list(figures(out, session, recon, trials, res, bars))
+        files += list(figures(out, session, recon, trials, res, bars, jobs))
     return files
 
 
@@ -694,7 +695,7 @@ class _Composer:
             analysis = self.stage(
                 "analyze", lambda: analyze_session(session, recon, trials, settings),
                 lambda res: write_analysis(out, session, recon, trials, res, self.bars,
-                                           self.writers.analysis_figures))
+                                           self.writers.analysis_figures, settings.jobs))
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 

@@ -25,11 +25,18 @@ from mocap.session import Session
 __all__ = ["analysis_figures", "audit_figures", "write_recording", "WRITERS"]
 
 
+# Below this many figures they are drawn in this process whatever ``jobs`` says: a spawned
+# worker imports numpy, pandas and matplotlib (about 1.5 s), and a figure takes 0.2-0.5 s.
+PARALLEL_MIN_FIGURES = 16
+
+
 def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials: Trials, res,
-                     bars: bool | None = False) -> list[Path]:
+                     bars: bool | None = False, jobs: int = 1) -> list[Path]:
     """The analyses' figures into ``out/figures`` (docs/outputs.md): per DU its displacement
     field and response curves, the linearity bars, the property chart and one figure per
-    evaluated motion take. ``res``: the run's ``SessionAnalysis``. Returns the files."""
+    evaluated motion take. ``res``: the run's ``SessionAnalysis``. Drawn on up to ``jobs``
+    processes when there are at least :data:`PARALLEL_MIN_FIGURES` (the paper preset's 41: 21 s
+    in one process). Returns the files, in the order above."""
     from mocap.analysis import figures as F
 
     du_names = {d.id: d.name for d in session.dus}
@@ -37,23 +44,39 @@ def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials:
     fig = out / "figures"
     rest = recon.markers.rest_mm
     props = res.properties
-    jobs = []
+    todo = []
     for avg in trials.averages:
         name = du_names.get(avg.du, "")
-        jobs.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
+        todo.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
                      (avg.du, name, rest, res.fields_mm[avg.du], res.keep[avg.du])))
-        jobs.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
+        todo.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
                      (avg.du, name, res.paper[avg.du], avg.fps)))
-    jobs.append((fig / "linearity.png", F.linearity_bars,
+    todo.append((fig / "linearity.png", F.linearity_bars,
                  (props["du"], props["linearity_mean"], props["linearity_std"])))
-    jobs.append((fig / "property_chart.png", F.property_chart,
+    todo.append((fig / "property_chart.png", F.property_chart,
                  (props["du"], props["sensitivity"], props["hysteresis"], props["dyssynchrony"],
                   [feedback.get(d, False) for d in props["du"]])))
     plans = {t.name: t.plan for t in session.takes}
     for take, _, ev in res.motions:
-        jobs.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
-    return [F.save(draw(*args), path)
-            for path, draw, args in progress_bar(jobs, len(jobs), "figures", bars)]
+        todo.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
+    return _draw_all(todo, bars, jobs)
+
+
+def _draw_all(todo: list, bars: bool | None, jobs: int) -> list[Path]:
+    """Each (path, draw, args) of ``todo`` drawn and saved; the paths in ``todo``'s order."""
+    from mocap.analysis.figures import draw_and_save
+
+    jobs = max(1, min(int(jobs), len(todo)))
+    if jobs == 1 or len(todo) < PARALLEL_MIN_FIGURES:
+        return [draw_and_save(*job) for job in progress_bar(todo, len(todo), "figures", bars)]
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(draw_and_save, *job) for job in todo]
+        for fut in progress_bar(as_completed(futures), len(futures), "figures", bars):
+            fut.result()  # a figure that fails stops the run here, with its error
+    return [fut.result() for fut in futures]
 
 
 def audit_figures(out: Path, audit: dict, recon: Reconstruction, calibration) -> list[Path]:

@@ -329,6 +329,23 @@ def test_figures_exist_and_are_not_blank(small_run):
         assert img[..., :3].std() > 0.05, name  # drawn, not blank
 
 
+def test_figures_drawn_in_worker_processes_are_those_drawn_in_the_run(small_run, tmp_path,
+                                                                      monkeypatch):
+    """A session with many figures (the paper preset's 41) draws them on the run's processes:
+    the files are byte for byte those one process draws (the small run's 15, drawn in-process
+    below the threshold, against the same drawn on two workers)."""
+    from mocap import run_outputs
+
+    monkeypatch.setattr(run_outputs, "PARALLEL_MIN_FIGURES", 1)
+    r = small_run
+    files = run_outputs.analysis_figures(tmp_path, r.session, r.reconstruction, r.trials,
+                                         r.analysis, False, 2)
+    assert len(files) == 15 and all(f.parent == tmp_path / "figures" for f in files)
+    for f in files:
+        assert f.read_bytes() == (r.out_dir / "figures" / f.name).read_bytes(), f.name
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == sorted(f.name for f in files)
+
+
 def test_motion_takes_follow_their_plans(small_run):
     evs = {plan: ev for _, plan, ev in small_run.analysis.motions}
     assert sorted(evs) == list("ABCDE")
