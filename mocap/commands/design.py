@@ -20,7 +20,10 @@ R_bwd^-1(1 - P) while falling, with each DU's sigmoids as 'mocap run' identifies
 --method model: the commands are optimised through the identified face model (hysteresis under
 arbitrary reversals, actuator lag, dead time, backlash, coupling, saturation, curvature: every
 effect the discrepancy workflow names, or those given by --effects), so that the chosen markers'
-predicted normalised displacement follows the plan (--markers). The design's reference is
+predicted normalised displacement follows the plan (--markers). A plan with a hold is designed
+with the hold at 1 and a little above (the evaluation divides each marker by the mean of its
+frames within 5 % of its peak, which include the top of the rise), and the design whose take
+the model predicts to track best is kept. The design's reference, its hold included, is
 written next to the command file (X.reference.csv).
 
 --refine TAKE: iterative learning control for a real robot. Play the commands, record the take,
