@@ -555,7 +555,7 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
     t0 = time.perf_counter()
     pb, times = _problem(model, ref, dus, step_s, fall_start_s, weights, headroom, spread_weight,
                          trial)
-    return _design(pb, times, ref, horizon, preview, sweeps, None, t0)
+    return _design(pb, times, ref, horizon, preview, sweeps, None, t0)[0]
 
 
 def _problem(model: FaceModel, ref: Reference, dus, step_s: float, fall_start_s: float | None,
@@ -587,11 +587,14 @@ def _problem(model: FaceModel, ref: Reference, dus, step_s: float, fall_start_s:
 
 
 def _design(pb: _Problem, times: np.ndarray, ref: Reference, horizon: int, preview: int,
-            sweeps: int, prefix: np.ndarray | None, t0: float) -> ModelDesign:
+            sweeps: int, prefix: np.ndarray | None, t0: float) -> tuple[ModelDesign, np.ndarray]:
+    """The design of ``pb`` and its first (causal) pass's commands (n_rows, N), which another
+    hold level's design may share (``prefix``)."""
     import time
 
     n_rows, J, M = pb.target.shape
     chosen, pred = _sweep(pb, None, horizon, preview, prefix)
+    causal = chosen.copy()
     for _ in range(sweeps):
         chosen, pred = _sweep(pb, chosen, horizon, preview)
     cost = float(pb.cost(pred.reshape(1, -1, M), pb.target.reshape(-1, M),
@@ -601,7 +604,7 @@ def _design(pb: _Problem, times: np.ndarray, ref: Reference, horizon: int, previ
               for n, du in enumerate(pb.dus)]
     rows = pd.concat(frames, ignore_index=True)
     return ModelDesign(rows, pb.t_s, pred.reshape(-1, M), pb.target.reshape(-1, M), cost,
-                       time.perf_counter() - t0, ref)
+                       time.perf_counter() - t0, ref), causal
 
 
 # hold levels tried by design_plan, in units of hold_lift() (1.5 was tried too: on PI straight,
@@ -682,14 +685,15 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
         if first is not None:
             # the causal pass chooses row i's commands from rows i .. i + preview - 1 of the
             # reference alone: the rows before the first that the hold's level changes are the
-            # first level's (the rise), replayed instead of searched
+            # first level's causal pass (the rise), replayed instead of searched; later sweeps
+            # run in full
             differs = np.any((pb.target != first[0].target) | (pb.ok != first[0].ok), axis=(1, 2))
             k = int(np.argmax(differs)) if differs.any() else differs.size
             prefix = first[1][:max(k - opts["preview"] + 1, 0)]
-        des = _design(pb, times, r, opts["horizon"], opts["preview"], opts["sweeps"], prefix,
-                      time.perf_counter())
+        des, causal = _design(pb, times, r, opts["horizon"], opts["preview"], opts["sweeps"],
+                              prefix, time.perf_counter())
         if first is None:
-            first = (pb, _commands_of(des.rows, pb.dus))
+            first = (pb, causal)
         ev = evaluate_design(model.predict(des.rows, n, trial), des.rows, model.fps, ref)
         score = 0.5 * (ev.rms_forward + ev.rms_backward)
         tried.append(HoldTrial(level, score, des.rows))
@@ -700,10 +704,6 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
     return replace(best[2], hold_level=best[1], tried=tuple(tried),
                    seconds=time.perf_counter() - t0)
 
-
-def _commands_of(rows: pd.DataFrame, dus) -> np.ndarray:
-    """(n_rows, N) the searched commands of a design's rows (its first row, 0 at t = 0, left out)."""
-    return np.stack([rows.loc[rows["du"] == du, "command"].to_numpy()[1:] for du in dus], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------

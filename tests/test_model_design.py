@@ -241,6 +241,16 @@ def test_design_plan_tries_each_hold_as_design_commands_would(lag_face, lag_plan
     pd.testing.assert_frame_equal(alone.rows, top.rows)
     kept = next(t for t in des.tried if t.level == des.hold_level)
     pd.testing.assert_frame_equal(des.rows, kept.rows)
+    # with a non-causal pass after the causal one, on a short plan (20 steps, a 0.2 s hold)
+    short = PlanTiming(n_steps=20, hold_s=0.2)
+    ref = plan_reference("E", short)
+    fall = short.start_s + short.duration_s + short.hold_s
+    des = design_plan(lag_face.model, ref, DUS, step_s=short.step_s, fall_start_s=fall, sweeps=1,
+                      preview=2)
+    for t in des.tried[1:]:
+        alone = design_commands(lag_face.model, with_hold(ref, t.level), DUS, step_s=short.step_s,
+                                fall_start_s=fall, sweeps=1, preview=2)
+        pd.testing.assert_frame_equal(alone.rows, t.rows)
 
 
 def test_model_design_beats_the_paper_on_a_face_without_effects(plain_face, plain_plans):
