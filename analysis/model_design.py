@@ -658,6 +658,11 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
     PI straight face: 0.335 -> 0.322 of the paper method's RMS played), on a bowed one it keeps
     it at 1 (plan B on the PI bowed face: 0.058 with the hold at 1, 0.085 lifted by 1). A plan
     without a hold, or ``lifts=(0,)``, is :func:`design_commands` itself.
+
+    Every level's design is exactly :func:`design_commands`' for the plan with that hold, but the
+    rise they share is searched once: the causal pass chooses a row from the reference's next
+    ``preview`` rows alone, so the rows before the hold are the first level's, replayed. Every
+    level tried is kept in ``tried`` (level, predicted RMS, rows).
     """
     import time
 
