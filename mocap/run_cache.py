@@ -202,7 +202,8 @@ def write_keyed_parquet(df, path: Path, key: str) -> Path:
     """``df`` as Parquet (zstd) written atomically, its schema metadata holding ``key``; only
     the columns that are not floating point dictionary-encoded, as
     :func:`mocap.atomic.write_parquet` writes (a paper take's trajectories: 81 -> 25 ms, 20 %
-    smaller; the run's main process wrote its 230 takes in 21 s of the reconstruction's 62)."""
+    smaller; profiled, the run's main process spent 21 s of the reconstruction's 62 writing its
+    230 takes)."""
     import pyarrow as pa
 
     table = pa.Table.from_pandas(df, preserve_index=False)

@@ -331,7 +331,7 @@ def test_figures_exist_and_are_not_blank(small_run):
 
 def test_figures_drawn_in_worker_processes_are_those_drawn_in_the_run(small_run, tmp_path,
                                                                       monkeypatch):
-    """A session with many figures (the paper preset's 41) draws them on the run's processes:
+    """A session with many figures (the paper preset's 39) draws them on the run's processes:
     the files are byte for byte those one process draws (the small run's 15, drawn in-process
     below the threshold, against the same drawn on two workers)."""
     from mocap import run_outputs
