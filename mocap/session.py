@@ -444,7 +444,8 @@ def _number(table, key, prefix, expected, *, positive=False, required=True) -> f
 
 
 def _integer(table, key, prefix, expected, *, minimum=None, required=True) -> int | None:
-    """An integer value (integer-valued floats such as 1280.0 accepted)."""
+    """An integer value (integer-valued floats such as 1280.0 accepted), at most 2**53: the
+    largest the take files' float columns hold exactly, and within numpy's int64."""
     if not required and key not in table:
         return None
     value = _require(table, key, prefix, expected)
@@ -452,6 +453,11 @@ def _integer(table, key, prefix, expected, *, minimum=None, required=True) -> in
     if not ok or (minimum is not None and value < minimum):
         raise SessionError(
             f"{MANIFEST}: {_ctx(prefix, key)}: expected {expected}, got {_show(value)}"
+        )
+    if abs(value) > _MAX_INT:
+        raise SessionError(
+            f"{MANIFEST}: {_ctx(prefix, key)}: expected {expected} of at most 2**53 "
+            f"({_MAX_INT}) in size, got {_show(value)}"
         )
     return int(value)
 

@@ -231,6 +231,26 @@ def test_camera_width_not_positive(spec2d, tmp_path):
         load(spec2d, tmp_path)
 
 
+@pytest.mark.parametrize("where", ["dus", "cameras", "takes"])
+def test_a_manifest_integer_beyond_2_to_the_53_is_refused_by_name(spec2d, tmp_path, where):
+    """Found by the manifest fuzz test: a DU id of 2.0**63 passed the manifest and overflowed
+    numpy's int64 when a commands file was checked against it."""
+    key = {"dus": "id", "cameras": "width", "takes": "trial"}[where]
+    table = spec2d.manifest[where][0]
+    table[key] = 2.0**63
+    with pytest.raises(
+        SessionError,
+        match=rf"session\.toml: {where}\[0\].*\.{key}: expected .* of at most 2\*\*53 "
+        r"\(9007199254740992\) in size, got 9\.223372036854776e\+18",
+    ):
+        load(spec2d, tmp_path)
+    table[key] = 2**53  # the largest accepted: the manifest loads or fails on something else
+    try:
+        load(spec2d, tmp_path)
+    except SessionError as err:
+        assert "2**53" not in str(err)
+
+
 def test_camera_height_not_integer(spec2d, tmp_path):
     spec2d.manifest["cameras"][1]["height"] = 1024.5
     with pytest.raises(
