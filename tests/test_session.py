@@ -457,6 +457,29 @@ def test_negative_frame(spec2d, tmp_path):
         load(spec2d, tmp_path).read_take("rest")
 
 
+@pytest.mark.parametrize("column", ["camera", "marker"])
+def test_parquet_text_that_is_not_utf8_is_named_by_row(tmp_path, column):
+    """Parquet readers do not check string bytes (found by the damaged-file fuzz test: a flipped
+    byte in a camera name gave a UnicodeDecodeError / ArrowInvalid instead of an error that
+    names the file and row)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    spec = sb.session_2d("parquet") if column == "camera" else sb.session_3d("parquet")
+    root = write(spec, tmp_path)
+    path = root / spec.take_file("rest")
+    table = pq.read_table(path)
+    raw = [v.encode() for v in table.column(column).to_pylist()]
+    raw[5] = b"c\x80m"
+    bad = pa.array(raw, pa.binary()).view(pa.string())
+    pq.write_table(table.set_column(table.schema.get_field_index(column), column, bad), path)
+    with pytest.raises(
+        SessionError,
+        match=rf"takes/rest\.parquet row 6: {column} b'c\\x80m' is not UTF-8 text",
+    ):
+        load_session(root).read_take("rest")
+
+
 def test_non_integer_frame_parquet(tmp_path):
     spec = sb.session_2d("parquet")
     table = spec.table("rest")
