@@ -10,7 +10,6 @@ The properties and the damages are in ``fuzz_inputs.py``.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -28,16 +27,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 _HEALTH = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large]
-# The same examples on every run (derandomize), so that the suite's verdict depends on the code
-# only: a new damage found by chance would otherwise fail whichever change happened to be tested.
-# The search for new ones is benchmarks/fuzz_inputs.py (thousands of random examples per target);
-# MOCAP_FUZZ_RANDOM=1 draws fresh examples here too.
-_FIXED = os.environ.get("MOCAP_FUZZ_RANDOM", "") in ("", "0")
-BOUNDED = settings(max_examples=100, deadline=None, database=None, suppress_health_check=_HEALTH,
-                   derandomize=_FIXED)
+# (the same examples on every run unless MOCAP_FUZZ_RANDOM=1: the profile set in conftest.py)
+BOUNDED = settings(max_examples=100, deadline=None, database=None, suppress_health_check=_HEALTH)
 # the two real C3D files with analog data take about 0.1 s per example on a quiet machine
 BOUNDED_HEAVY = settings(max_examples=40, deadline=None, database=None,
-                         suppress_health_check=_HEALTH, derandomize=_FIXED)
+                         suppress_health_check=_HEALTH)
 HEAVY = ("vicon_nexus24_markers_emg.c3d", "qualisys_qtm217_forceplates.c3d")
 
 GENERATED = ("motive.csv", "qtm.tsv", "vicon.csv", "ours.c3d")
