@@ -39,7 +39,7 @@ from mocap.design_io import identify_model, load_model, play_virtual, save_model
 from mocap.truth_properties import true_properties
 
 DUS = (1, 7, 12)
-FACE = dict(du_ids=DUS, n_markers=40, n_trials=2, labeled=True, motion_plans=(), seed=3)
+FACE = dict(du_ids=DUS, n_markers=20, n_trials=2, labeled=True, motion_plans=(), seed=3)
 TIMING = PlanTiming()
 FALL_S = TIMING.start_s + TIMING.duration_s + TIMING.hold_s
 
