@@ -15,6 +15,12 @@ reference (the plan), by a causal search (model predictive control over integer 
         e_m = |d_m(t)| / n_m - r_m(t)
     keep the best c, advance the model's state over step i with every DU's choice.
 
+The preview (:func:`default_preview`): with an actuator lag or a dead time a command shows in
+the markers mostly after the step it is sent in, and a greedy pass (preview 1) drives it as if
+it did not; holding the candidate over two steps and scoring both lets the pass see where it
+leads. On a face that responds at once the same preview holds each command over a step it does
+not belong to, so the default is 2 where the model has a lag or a dead time and 1 otherwise.
+
 Optional later passes (``sweeps``) score step i's command over a longer ``horizon`` with the
 following steps at the previous pass's commands (Gauss-Seidel on the whole plan's cost), which
 lets a command anticipate where a later one saturates.
@@ -524,7 +530,7 @@ def _sweep(pb: _Problem, prev: np.ndarray | None, horizon: int, preview: int,
 
 def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.016,
                     fall_start_s: float | None = None, weights: np.ndarray | None = None,
-                    preview: int = 1, horizon: int = 12, sweeps: int = 0,
+                    preview: int | None = None, horizon: int = 12, sweeps: int = 0,
                     headroom: float = 24.0, spread_weight: float = 0.2,
                     trial: int = 1) -> ModelDesign:
     """Commands of ``dus`` whose model response follows ``ref`` (see the module docstring).
@@ -536,7 +542,8 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
     step_s : the rig's command step, s; one row per step from ``ref.start_s``.
     fall_start_s : start of the return in the paper's timing (its own step grid), or None.
     weights : (M,) marker weights (default :func:`marker_weights` of every moving marker).
-    preview : steps over which a candidate is held in the first, causal pass (1: greedy).
+    preview : steps over which a candidate is held in the first, causal pass (1: greedy);
+        None: :func:`default_preview` of the model (2 with actuator dynamics, else 1).
     horizon : steps over which a step's command is scored in the later passes, the following
         steps keeping the previous pass's commands (a few actuator time constants: this is what
         lets a command anticipate where a later one saturates at 0 or 255).
@@ -555,7 +562,33 @@ def design_commands(model: FaceModel, ref: Reference, dus, *, step_s: float = 0.
     t0 = time.perf_counter()
     pb, times = _problem(model, ref, dus, step_s, fall_start_s, weights, headroom, spread_weight,
                          trial)
+    preview = _preview(model, preview)
     return _design(pb, times, ref, horizon, preview, sweeps, None, t0)[0]
+
+
+def default_preview(model: FaceModel) -> int:
+    """The causal pass's preview for ``model``: 2 command steps when it has actuator dynamics (a
+    lag or a dead time), else 1 (greedy).
+
+    A candidate held over the next two steps and scored on both is what a lagging actuator
+    needs: its command shows in the markers mostly after the step it is sent in, and the greedy
+    pass drives it as if it did not (overshooting into the next step; on a straight-path face
+    with a second-order lag, which the model's first-order one only approximates, plan E played
+    at 0.36 of the paper method's RMS greedy, 0.31 with the preview). On a face that responds
+    at once the same preview holds each command over a step it does not belong to, half a step
+    behind a rising plan: it doubles the RMS (plan A on the PI straight face without effects
+    0.32 -> 0.60). benchmarks/design_sweep.md has both on every base-face family.
+    """
+    dynamic = model.effect("lag") is not None or model.effect("deadtime") is not None
+    return 2 if dynamic else 1
+
+
+def _preview(model: FaceModel, preview) -> int:
+    if preview is None:
+        return default_preview(model)
+    if isinstance(preview, bool) or int(preview) != preview or preview < 1:
+        raise ValueError(f"preview: expected a whole number of command steps >= 1, got {preview!r}")
+    return int(preview)
 
 
 def _problem(model: FaceModel, ref: Reference, dus, step_s: float, fall_start_s: float | None,
@@ -680,6 +713,7 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
     if unknown:
         raise TypeError(f"design_plan: unexpected keyword arguments {sorted(unknown)}")
     opts.update(kwargs)
+    opts["preview"] = _preview(model, opts["preview"])
     n = int(round((ref.end_s + tail_s) * model.fps))
     first, tried, best = None, [], None
     for level in levels:

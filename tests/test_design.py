@@ -37,6 +37,10 @@ def test_design_cli_errors(tmp_path, capsys):
     assert "neither properties.csv" in capsys.readouterr().err
     assert main(["design", str(tmp_path), "--plan", "Z", "--dus", "4", "--out", str(tmp_path / "c.csv")]) == 1
     assert "expected one of" in capsys.readouterr().err
+    for bad in (["--preview", "0"], ["--sweeps", "-1"]):
+        assert main(["design", str(tmp_path), "--plan", "A", "--dus", "4", "--method", "model",
+                     "--out", str(tmp_path / "c.csv"), *bad]) == 1
+        assert "--preview/--sweeps" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

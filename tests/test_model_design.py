@@ -18,6 +18,7 @@ from mocap.analysis.model_design import (
     command_times,
     design_commands,
     HOLD_LIFTS,
+    default_preview,
     design_plan,
     evaluate_design,
     file_reference,
@@ -253,6 +254,26 @@ def test_design_plan_tries_each_hold_as_design_commands_would(lag_face, lag_plan
         pd.testing.assert_frame_equal(alone.rows, t.rows)
 
 
+def test_the_causal_pass_previews_two_steps_where_the_model_has_actuator_dynamics(lag_face,
+                                                                                   plain_face):
+    """The default preview follows the identified model, not the face: 2 command steps with a
+    lag or a dead time, 1 (greedy) without; the designs made with the default are those made
+    with it given explicitly."""
+    lagged, plain = lag_face.model, plain_face.model
+    assert lagged.effect("lag") is not None and default_preview(lagged) == 2
+    assert lagged.effect("deadtime") is None and plain.effect("lag") is None
+    assert default_preview(plain) == 1
+    without = lagged.with_effects(tuple(e for e in lagged.effects if e.name != "lag"))
+    assert default_preview(without) == 1
+    ref = plan_reference("E", PlanTiming(n_steps=20, hold_s=0.2))
+    for model, preview in ((lagged, 2), (plain, 1)):
+        a = design_commands(model, ref, DUS, step_s=TIMING.step_s)
+        b = design_commands(model, ref, DUS, step_s=TIMING.step_s, preview=preview)
+        c = design_commands(model, ref, DUS, step_s=TIMING.step_s, preview=3 - preview)
+        pd.testing.assert_frame_equal(a.rows, b.rows)
+        assert not a.rows.equals(c.rows)
+
+
 def test_model_design_beats_the_paper_on_a_face_without_effects(plain_face, plain_plans):
     """Nothing hidden, on a base family the model does not share: the model's design tracks
     plans B-E at most a third of the paper method's RMS on the true face, the paper's sigmoids
@@ -395,6 +416,9 @@ def test_marker_choice_and_errors(lag_face, tmp_path):
         marker_weights(model, DUS, ["NOPE"])
     with pytest.raises(ValueError, match="no DUs"):
         design_commands(model, plan_reference("A"), [99])
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="preview"):
+            design_commands(model, plan_reference("A"), DUS, preview=bad)
     bad = tmp_path / "bad.csv"
     pd.DataFrame({"time_s": [0, 1, 2], "P": [0, 1.5, 0]}).to_csv(bad, index=False)
     with pytest.raises(ValueError, match="row 3"):

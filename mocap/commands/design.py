@@ -86,6 +86,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the full motion is the response to 255 - headroom (command units)")
     g.add_argument("--sweeps", type=int, default=0,
                    help="non-causal passes over the whole plan after the causal one (slower)")
+    g.add_argument("--preview", type=int, default=None, metavar="STEPS",
+                   help="command steps over which the causal pass holds and scores a candidate "
+                        "(default: 2 when the model has a lag or dead time, else 1)")
     g.add_argument("--model", type=Path, default=None, metavar="FILE",
                    help="use the face model a previous --save-model wrote instead of identifying "
                         "it again (the same SOURCE's; with --refine repetitions)")
@@ -150,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if not dus:
         print("error: --dus: expected at least one DU", file=sys.stderr)
+        return 1
+    if (args.preview is not None and args.preview < 1) or args.sweeps < 0:
+        print(f"error: --preview/--sweeps: expected a preview of at least 1 command step and "
+              f"sweeps >= 0, got {args.preview}, {args.sweeps}", file=sys.stderr)
         return 1
     if not (args.source / "properties.csv").is_file() and not (args.source / "session.toml").is_file() \
             and not (args.source / "summary.json").is_file():
@@ -257,7 +264,8 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
     # refinement keeps the hold of the reference it refines
     design = design_commands if take is not None else design_plan
     des = design(model, design_ref, dus, step_s=timing.step_s, fall_start_s=fall,
-                 weights=weights, headroom=args.headroom, sweeps=args.sweeps)
+                 weights=weights, headroom=args.headroom, sweeps=args.sweeps,
+                 preview=args.preview)
     write_csv(des.rows, args.out, decimals=6)
     write_reference(reference_path(args.out), des.reference, model.marker_names)
     if des.hold_level is not None and des.hold_level != 1.0:
