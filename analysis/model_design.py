@@ -801,8 +801,9 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
     s_m is the marker's noise per axis, its standard deviation over the rest frames before the
     first command change (0 with fewer than 3: then nothing is corrected).
 
-    X (n_frames, M, 3) mm; command (n_frames,) or (n_frames, n_dus). Returns delta (n_frames, M),
-    the plateau length (M,) mm and s_m (M,) mm.
+    X (n_frames, M, 3) mm, NaN where a marker is missing; command (n_frames,) or (n_frames,
+    n_dus). Returns delta (n_frames, M) (NaN where X is), the plateau length (M,) mm (NaN for a
+    marker never seen) and s_m (M,) mm.
     """
     import warnings
 
@@ -844,7 +845,7 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
             top = np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=0)
             on = np.isfinite(length[:, cols]) & (s >= PLATEAU * top[None]) & (top[None] > 0)
         level = np.where(on, length[:, cols], 0.0).sum(axis=0) / np.maximum(on.sum(axis=0), 1)
-        peak[cols] = np.where(on.any(axis=0), level, top)
+        peak[cols] = np.where(on.any(axis=0), level, np.where(np.isfinite(top), top, np.nan))
     with np.errstate(invalid="ignore", divide="ignore"):
         return length / np.where(peak > 0, peak, np.nan)[None], peak, np.sqrt(var)
 

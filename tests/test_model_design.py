@@ -619,6 +619,13 @@ def test_debiased_delta_has_no_noise_bias_for_the_refinement_to_learn():
             assert max(map(abs, bias)) < 0.004, bias
         else:  # what the correction removes
             assert bias[0] < -0.006 and bias[1] > 0.006, bias
+    # missing samples stay missing; a marker never seen has no plateau
+    Xn[100:160, 3] = np.nan
+    Xn[:, 7] = np.nan
+    delta, peak, _ = debiased_delta(Xn, take.series)
+    seen = np.isfinite(Xn[..., 0])
+    assert np.isnan(delta[~seen]).all() and np.isfinite(delta[seen]).all()
+    assert np.isnan(peak[7]) and np.isfinite(np.delete(peak, 7)).all()
 
 
 def test_refinement_from_noisy_takes_learns_the_designs_mean_error(plain_face):
