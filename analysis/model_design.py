@@ -807,6 +807,7 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
     """
     import warnings
 
+    from mocap.analysis.noise_corrected import box_mean
     from mocap.reconstruct.displacement import PLATEAU, principal_direction, smoothed
 
     change = np.flatnonzero(np.any(np.diff(np.asarray(command).reshape(len(command), -1), axis=0)
@@ -839,7 +840,14 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
     for w in np.unique(W).astype(int):
         cols = np.flatnonzero(W == w)
         # beyond the evaluation's own smoothing the noise matters: leave each frame's out
-        s = _left_out_mean(length[:, cols], w) if w > smooth_frames else smoothed(length[:, cols], w)
+        if w > smooth_frames:  # each frame left out of its own window's mean
+            x = length[:, cols]
+            mean, cnt = box_mean(x, w + (1 - w % 2))  # odd: centred
+            with np.errstate(invalid="ignore", divide="ignore"):
+                s = np.where(np.isfinite(x), np.where(cnt > 1, (mean * cnt - np.nan_to_num(x))
+                                                      / (cnt - 1), np.nan), mean)
+        else:
+            s = smoothed(length[:, cols], w)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             top = np.nanmax(np.where(np.isfinite(s), s, -np.inf), axis=0)
@@ -850,18 +858,26 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
         return length / np.where(peak > 0, peak, np.nan)[None], peak, np.sqrt(var)
 
 
-def _left_out_mean(x: np.ndarray, frames: int) -> np.ndarray:
-    """NaN-aware centred moving average of x (n_frames, M) over ``frames`` frames leaving out
-    the frame itself: a frame picked by it is not picked by its own noise."""
-    from scipy.ndimage import convolve1d
+def _smooth_nan(x: np.ndarray, frames: int) -> np.ndarray:
+    """NaN-aware centred moving average of x (n_frames, M) over ``frames`` frames (edges
+    repeated); NaN where the window holds no value."""
+    if frames <= 1:
+        return x
+    from scipy.ndimage import uniform_filter1d
 
-    k = np.ones(max(int(frames), 2) + 1)
-    k[k.size // 2] = 0.0
     ok = np.isfinite(x)
-    num = convolve1d(np.where(ok, x, 0.0), k, axis=0, mode="nearest")
-    den = convolve1d(ok.astype(float), k, axis=0, mode="nearest")
+    num = uniform_filter1d(np.where(ok, x, 0.0), frames, axis=0, mode="nearest")
+    cnt = uniform_filter1d(ok * 1.0, frames, axis=0, mode="nearest")
+    return np.where(cnt > 0, num / np.maximum(cnt, 1e-12), np.nan)
+
+
+def _weighted_mean(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(n_frames,) mean over markers of x (n_frames, M) in weights w (M,), over the finite values
+    of positive weight; NaN where there is none."""
+    ok = np.isfinite(x) & (w[None] > 0)
+    den = np.sum(ok * w[None], axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / den, np.nan)
+        return np.where(den > 0, np.sum(np.where(ok, x, 0.0) * w[None], axis=1) / den, np.nan)
 
 
 def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
@@ -913,14 +929,6 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
             s2 = np.nan_to_num(peak_meas[pos[n]]) ** 2
             snr[m] = s2 / max(s2 + (SNR_NOISE * noise_meas[pos[n]]) ** 2, 1e-300) if s2 > 0 else 0.0
     t = np.arange(n_frames) / model.fps
-    err = plan_ref.at(t, M) - delta
-    from scipy.ndimage import uniform_filter1d
-
-    if smooth_frames > 1:
-        ok = np.isfinite(err)
-        num = uniform_filter1d(np.where(ok, err, 0.0), smooth_frames, axis=0, mode="nearest")
-        cnt = uniform_filter1d(ok * 1.0, smooth_frames, axis=0, mode="nearest")
-        err = np.where(cnt > 0, num / np.maximum(cnt, 1e-12), np.nan)
     # only the evaluated parts learn: the hold and the rests anchor the scale (the normalised
     # displacement divides by the take's own plateau, so an error there cannot be corrected and
     # learning it would drift the whole motion's scale)
@@ -928,29 +936,19 @@ def refined_reference(model: FaceModel, plan_ref: Reference, rows: pd.DataFrame,
         ((t >= plan_ref.fall[0]) & (t < plan_ref.fall[1]))
     w0 = marker_weights(model, dus, trial=trial) if weights is None else np.asarray(weights, float)
     w = w0 * snr  # markers that barely move above the noise teach little
-    ok = np.isfinite(err) & (w[None] > 0)
-    e_mean = np.sum(np.where(ok, err, 0.0) * w[None], axis=1) / np.maximum(
-        np.sum(ok * w[None], axis=1), 1e-12)
+    target = plan_ref.at(t, M)
+    pred = predicted_delta(model, rows, n_frames, trial) if control or previous is None else None
     if control:
         # the model's prediction as a control variate: its error against the plan in the design's
-        # own weights (noise-free) less in the signal-to-noise weights; what is left to read
-        # from the noisy take in those weights is only the model's error, which is far more
-        # alike across markers than the tracking error itself
-        pred = predicted_delta(model, rows, n_frames, trial)
-        e_pred = plan_ref.at(t, M) - pred
-        if smooth_frames > 1:
-            e_pred = uniform_filter1d(np.nan_to_num(e_pred), smooth_frames, axis=0, mode="nearest")
-        ok0 = np.isfinite(pred) & (w0[None] > 0)
-        e_mean = e_mean + (
-            np.sum(np.where(ok0, e_pred, 0.0) * w0[None], axis=1)
-            / np.maximum(np.sum(ok0 * w0[None], axis=1), 1e-12)
-            - np.sum(np.where(ok & ok0, e_pred, 0.0) * w[None], axis=1)
-            / np.maximum(np.sum((ok & ok0) * w[None], axis=1), 1e-12))
-    e_mean = np.where(learn & ok.any(axis=1), e_mean, 0.0)
-    if previous is not None:
-        r_prev = previous.at(t, M)
+        # own weights (noise-free), plus what only the noisy take can tell, the model's error
+        # pred - delta, read in the signal-to-noise weights (far more alike across markers than
+        # the tracking error itself, so the other weights barely change its mean)
+        e_mean = (_weighted_mean(_smooth_nan(target - pred, smooth_frames), w0)
+                  + _weighted_mean(_smooth_nan(pred - delta, smooth_frames), w))
     else:
-        r_prev = predicted_delta(model, rows, n_frames, trial)
+        e_mean = _weighted_mean(_smooth_nan(target - delta, smooth_frames), w)
+    e_mean = np.where(learn & np.isfinite(e_mean), e_mean, 0.0)
+    r_prev = previous.at(t, M) if previous is not None else pred
     r_new = r_prev + gain * (e_mean[:, None] if r_prev.ndim == 2 else e_mean)
     # before the motion starts nothing is asked; the reference stays a normalised displacement
     r_new[t < plan_ref.start_s] = 0.0
