@@ -49,7 +49,7 @@ def undistort_rounds(x0, y0, x, y, k1, k2, p1, p2, k3, m, iterations):
             break
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def project_pixel(K, dist, R, t, c, X0, X1, X2):
     """World point (mm) -> distorted pixel (px) in camera c; NaN behind the camera (z <= 0).
 

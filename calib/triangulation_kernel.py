@@ -30,7 +30,7 @@ from numba import njit, prange  # noqa: E402
 from mocap.calib.distortion_kernel import BLOCK, undistort_rounds  # noqa: E402
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, x0, x1, x2):
     """Solve the symmetric 3x3 systems [[a00, a01, a02], [., a11, a12], [., ., a22]] x = b of the
     first ``m`` entries of (B,) arrays by Cramer's rule, into x0, x1, x2 (B,); NaN where
@@ -52,7 +52,7 @@ def _solve3_block(a00, a01, a02, a11, a12, a22, b0, b1, b2, m, x0, x1, x2):
         x2[p] = np.nan if singular else s2
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2):
     """Triangulate the first ``m`` points of a block: the weighted linear solution (DLT normal
     equations), then ``iterations`` Gauss-Newton steps on the weighted normalised residuals.

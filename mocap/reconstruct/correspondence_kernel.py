@@ -77,7 +77,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
     return xn, ray
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _cell(x, x0, scale):
     """Column band (0 .. N_CELLS - 1) of image x (px) in a bucket whose bands start at ``x0`` px,
     ``1 / scale`` px wide; non-decreasing in x."""
@@ -189,7 +189,7 @@ def compact_buckets(ptr, order, used):
     return ptr2, order2
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _epipolar_angle(ray, i, bn, e1, e2):
     """Angle (rad, [0, 2 pi]) about the baseline ``bn`` of blob i's epipolar plane, and the sine
     of the angle between blob i's ray and the baseline."""
@@ -201,7 +201,7 @@ def _epipolar_angle(ray, i, bn, e1, e2):
             np.sqrt(n0 * n0 + n1 * n1 + n2 * n2))
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _angle_bound(gate_px, focal, xn, i, sin_ray):
     """Upper bound (rad) on the angle between blob i's epipolar plane and that of any blob whose
     symmetric epipolar distance to it is under ``gate_px`` px in blob i's image; inf when the
@@ -271,7 +271,7 @@ def _band_sort(keys, idx, n, keys2, idx2, start):
     return lo, scale
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _first_at_least(keys, n, start, lo, scale, x):
     """First index r of the band-sorted keys[:n] (see :func:`_band_sort`) with keys[r] >= x
     (n if none): as ``np.searchsorted(keys[:n], x)``. Bands are non-decreasing in the key, so
@@ -390,7 +390,7 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
     return pa[:m].copy(), pb[:m].copy()
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _nearest_blob(cells, x0, scale, order_x, uv_x, k, u, v, gate_px):
     """Nearest blob of bucket k to (u, v) px closer than ``gate_px``; -1 if none.
 
@@ -464,7 +464,7 @@ def verify_candidates(X, pa, pb, a, b, fidx, cells, x0, scale, order_x, uv_x, n_
     return views, keep
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _row_less(views, r, q):
     """Row r of views (m, C) before row q in lexicographic order."""
     for c in range(views.shape[1]):

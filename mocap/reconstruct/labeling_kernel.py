@@ -43,7 +43,7 @@ def _frame_buckets(fidx, x, n_frames):
     return ptr, order, xs
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _nearest(ptr, order, xs, X, f, q0, q1, q2, gate):
     """Index of the point of frame index f nearest to (q0, q1, q2) mm and closer than ``gate``
     mm (strictly), -1 if none."""
