@@ -161,6 +161,15 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
                 for k, v in s.parameters.items()) +
                 f"{' (read ' + s.reading + ')' if s.reading else ''}"
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
+            item = s.evidence[0] if edge else {}
+            if edge and s.heldout_rms_after_mm > s.heldout_rms_before_mm and "takes_better" in item:
+                L += ["", f"The held-out RMS rises, but take by take the play predicts "
+                      f"{item['takes_better']} held-out takes better and {item['takes_worse']} "
+                      f"worse (the median take's SSE x {item['takes_median_ratio']:.3f}); the "
+                      f"total is carried by {item['most_worse_take']['take']} "
+                      f"({item['most_worse_take']['sse_mm2'][0]:.4g} -> "
+                      f"{item['most_worse_take']['sse_mm2'][1]:.4g} mm^2 held out without and "
+                      "with the play)."]
             if s.per_du:
                 L += ["", "Per DU, from each DU's own takes: " + ", ".join(
                     f"DU {du}: {v:.4g}" for du, v in s.per_du.items()) + f" {unit}."]
