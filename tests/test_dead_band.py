@@ -133,6 +133,41 @@ def test_a_band_after_a_coupling_is_read_to_the_widths_the_fits_cannot_tell_apar
     assert prof.best == pytest.approx(0.5 * (lo + hi))
 
 
+def test_a_band_the_folds_read_flat_is_reported_over_their_hull():
+    """A dead band whose profile on all takes has one minimum while each fold's is flat over an
+    interval: the widths the data allow are the hull of the folds' intervals and that minimum,
+    the value its centre and the model's band set to it; a profile with its own plateau, an
+    effect not read on command rows, or folds without intervals are left as they are."""
+    from dataclasses import dataclass
+
+    from mocap.analysis.discrepancy import fold_hull
+    from mocap.analysis.model_effects import Lag
+    from mocap.analysis.model_fit import Profile
+
+    @dataclass(frozen=True)
+    class Model:  # the two members fold_hull uses
+        effects: tuple
+
+        def with_effects(self, effects):
+            return Model(tuple(effects))
+
+    other = Lag(0.05)
+    prof = Profile([5.9, 7.0, 8.1], [366.6, 363.2, 363.3], 7.0,
+                   Model((other, StickSlipBacklash(7.0))), 100, resolution=6.0)
+    out = fold_hull(prof, StickSlipBacklash, [(6.56, 12.51), (6.5, 9.49)])
+    assert out.interval == pytest.approx((6.5, 12.51))
+    assert out.best == pytest.approx(0.5 * (6.5 + 12.51))
+    assert out.model.effects == (other, StickSlipBacklash(0.5 * (6.5 + 12.51)))
+    assert out.resolution == pytest.approx(12.51 - 6.5)
+    # the minimum outside every fold's interval widens the hull to it
+    assert fold_hull(prof, StickSlipBacklash, [(7.5, 9.0), None]).interval == pytest.approx((7.0, 9.0))
+    for unchanged in (fold_hull(prof, StickSlipBacklash, [None, None]),
+                      fold_hull(prof, Lag, [(6.56, 12.51), (6.5, 9.49)])):
+        assert unchanged is prof
+    flat = Profile([7.0, 9.0], [363.2, 363.2], 8.0, prof.model, 100, interval=(6.4, 12.7))
+    assert fold_hull(flat, StickSlipBacklash, [(6.56, 12.51), (6.5, 9.49)]) is flat
+
+
 def test_backlash_passes_the_naming_test(dead_band_face):
     """Scored as the workflow scores it (margin, plausibility, explained excess in the whole
     session or, with ``local``, where it acts), against the base. Against its null the band
