@@ -168,6 +168,20 @@ def test_a_band_the_folds_read_flat_is_reported_over_their_hull():
     assert fold_hull(flat, StickSlipBacklash, [(6.56, 12.51), (6.5, 9.49)]) is flat
 
 
+def test_a_band_whose_widths_that_fit_alike_reach_zero_is_not_supported():
+    """The whole session's plateau reaching a band of 0 (3.28 in 0-6.56 on a face with a play
+    of 12 after its coupling) does not support the band; a plateau above 0, or none, does."""
+    from mocap.analysis.discrepancy import reaches_null
+    from mocap.analysis.model_fit import Profile
+
+    def prof(interval):
+        return Profile([0.0, 3.0], [1.0, 1.0], 3.28, None, 10, interval=interval)
+
+    assert reaches_null(prof((0.0, 6.5625)), StickSlipBacklash)
+    assert not reaches_null(prof((6.5, 12.5)), StickSlipBacklash)
+    assert not reaches_null(prof(None), StickSlipBacklash)
+
+
 def test_backlash_passes_the_naming_test(dead_band_face):
     """Scored as the workflow scores it (margin, plausibility, explained excess in the whole
     session or, with ``local``, where it acts), against the base. Against its null the band
