@@ -15,7 +15,8 @@ hidden effect in <= 5 %; each named parameter within 20 % of the truth; final he
 
 The cases run in a seeded shuffled order (each seed's own order, the seeds taken in turn), so a
 partial run samples every family, effect and form; ``--skip`` resumes a sweep across sittings.
-Shards run side by side (one process each) and append JSON lines; ``--summarise`` merges them.
+Shards run side by side (one process each) and append JSON lines; ``--summarise`` merges them
+(a case given twice counts once, its row from the later file: a case run again on newer code).
 
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 0/2 > /tmp/sweep0.jsonl
     python benchmarks/cross_family_sweep.py --seeds 1,2,3 --shard 1/2 > /tmp/sweep1.jsonl
@@ -309,6 +310,18 @@ def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
     return summary, "\n".join(L) + "\n"
 
 
+def case_key(row: dict) -> tuple:
+    """(family, effect, seed, form): the case a row ran."""
+    return row["family"], row["effect"], int(row["seed"]), row.get("form") or seed_form(int(row["seed"]))
+
+
+def latest_rows(rows: list[dict]) -> list[dict]:
+    """One row per case, the last one given (files in the order given, lines in file order): a
+    case run again on newer code, in a later file, supersedes its earlier row."""
+    last = {case_key(r): r for r in rows}
+    return list(last.values())
+
+
 def code_version() -> str:
     """The commit the cases run on, with "+dirty" when the package's sources differ from it (a
     sweep resumed across sittings must say which code each row comes from)."""
@@ -348,8 +361,8 @@ def main() -> int:
               for p in (c.split(":") for c in args.cases.split(",") if c)]
     planned = len(chosen) if chosen else len(cases(seeds))
     if args.summarise is not None:
-        rows = [rescore(json.loads(line)) for p in args.summarise
-                for line in p.read_text().splitlines() if line.startswith("{")]
+        rows = latest_rows([rescore(json.loads(line)) for p in args.summarise
+                            for line in p.read_text().splitlines() if line.startswith("{")])
         summary, md = summarise(rows, planned)
         if args.note:
             head, sep, tail = md.partition("| target |")
