@@ -383,15 +383,9 @@ def fold_takes(data: ModelData, f: int) -> list[int]:
 
 def heldout(data: ModelData, models: list[FaceModel]) -> tuple[float, int, list[np.ndarray]]:
     """Held-out SSE (mm^2), scalar count and residuals (per take, (S, M, 3)) of fold models."""
-    total, count, res = 0.0, 0, []
-    for k, t in enumerate(data.takes):
-        e = take_residual(data, models[1 - t.fold], k)
-        res.append(e)
-        u = e[:, data.used]
-        ok = np.isfinite(u)
-        total += float(np.sum(u[ok] ** 2))
-        count += int(ok.sum())
-    return total, count, res
+    res = [take_residual(data, models[1 - t.fold], k) for k, t in enumerate(data.takes)]
+    count = sum(int(np.isfinite(e[:, data.used]).sum()) for e in res)
+    return float(sum(take_sse(res, data.used))), count, res
 
 
 def fold_sse(data: ModelData, model: FaceModel, fold: int) -> float:
@@ -813,15 +807,15 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
             cls = fits[item["effect"]].cls or CATALOGUE[item["effect"]]
             prof = profile_effect(data, full, cls(), all_takes)
             value = reported_value(prof, cls)
-            held = not reaches_null(prof, cls)
-            if cls.per_curve or (cls(value).plausible() and held):
+            supported = not reaches_null(prof, cls)
+            if cls.per_curve or (cls(value).plausible() and supported):
                 best = item
                 break
             item["plausible"] = False
             shown = cls(value).describe()
             item["reason"] = (f"on all takes its {cls.parameter} is {shown['value']:.4g} "
                               f"{shown['unit']}, " + (
-                                  "not a plausible value" if held else
+                                  "not a plausible value" if supported else
                                   f"and every value from {prof.interval[0]:.4g} to "
                                   f"{prof.interval[1]:.4g} fits alike") +
                               ": the folds' gain does not hold on the whole session")
@@ -1142,8 +1136,13 @@ EDGE_HELDOUT_SLACK = 0.01  # the held-out SSE with the play may exceed its null'
 
 
 def take_sse(residuals: list[np.ndarray], used: np.ndarray) -> np.ndarray:
-    """(n_takes,) each take's SSE (mm^2) over the scored markers, from per-take residuals (S, M, 3)."""
-    return np.array([float(np.nansum(e[:, used] ** 2)) for e in residuals])
+    """(n_takes,) each take's SSE (mm^2) over the scored markers' finite residuals, from
+    per-take residuals (S, M, 3) (:func:`heldout` sums them)."""
+    out = []
+    for e in residuals:
+        u = e[:, used]
+        out.append(float(np.sum(u[np.isfinite(u)] ** 2)))
+    return np.array(out)
 
 
 def shift_trend(points: list[tuple[int, int, float]]) -> dict:

@@ -373,7 +373,7 @@ def main() -> int:
         print(md.split("| family |")[0])
         return 0
     i, n = (int(v) for v in args.shard.split("/"))
-    done = {(r["family"], r["effect"], int(r["seed"]), r["form"]) for p in args.skip
+    done = {case_key(r) for p in args.skip
             for r in map(json.loads, p.read_text().splitlines()) if "error" not in r}
     todo = [(fam, eff, seed, form) for fam, eff, seed, form in
             (chosen or [(*c, None) for c in cases(seeds)])

@@ -161,8 +161,8 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
                 for k, v in s.parameters.items()) +
                 f"{' (read ' + s.reading + ')' if s.reading else ''}"
                 f". Held-out RMS {s.heldout_rms_before_mm:.4f} -> {s.heldout_rms_after_mm:.4f} mm."]
-            item = s.evidence[0] if edge else {}
-            if edge and s.heldout_rms_after_mm > s.heldout_rms_before_mm and "takes_better" in item:
+            item = s.evidence[0]
+            if edge and s.heldout_rms_after_mm > s.heldout_rms_before_mm:
                 L += ["", f"The held-out RMS rises, but take by take the play predicts "
                       f"{item['takes_better']} held-out takes better and {item['takes_worse']} "
                       f"worse (the median take's SSE x {item['takes_median_ratio']:.3f}); the "
