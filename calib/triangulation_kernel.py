@@ -3,7 +3,9 @@
 Same mathematics as :func:`mocap.calib.triangulation.linear_triangulation` followed by
 :func:`mocap.calib.triangulation.gauss_newton` (the NumPy reference the tests compare against).
 Points are solved a block at a time as structure-of-arrays loops (``solve_block``), so every
-loop over points vectorises; blocks run in parallel. ``triangulate_pixels_kernel`` fuses the
+loop over points vectorises; blocks run in parallel for large calls on more than one thread and
+on the calling thread otherwise (``PARALLEL_MIN_POINTS``; the same block function either way, so
+the same bits). ``triangulate_pixels_kernel`` fuses the
 undistortion of distorted pixels (:mod:`mocap.calib.distortion_kernel`), the solution and the
 reprojection residuals in one pass: what :func:`mocap.calib.triangulation.triangulate` runs.
 Kernels are compiled on first use and cached on disk (``cache=True``); ``error_model="numpy"``
@@ -25,7 +27,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
-from numba import njit, prange  # noqa: E402
+from numba import get_num_threads, njit, prange  # noqa: E402
 
 from mocap.calib.distortion_kernel import BLOCK, undistort_rounds  # noqa: E402
 
@@ -155,37 +157,147 @@ def solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2):
             X2[p] = X2[p] + d2[p] if step else X2[p]
 
 
+@njit(cache=True, error_model="numpy")
+def _normalized_block(Rt, weights, xn, iterations, out, blk):
+    """Block ``blk`` of :func:`triangulate_kernel` (points blk * BLOCK onwards)."""
+    C = xn.shape[0]
+    N = xn.shape[1]
+    B = BLOCK
+    s = blk * B
+    m = min(B, N - s)
+    xb = np.empty((C, B))
+    yb = np.empty((C, B))
+    wb = np.empty((C, B))
+    for c in range(C):
+        w2 = weights[c] * weights[c]
+        for p in range(m):
+            x = xn[c, s + p, 0]
+            y = xn[c, s + p, 1]
+            seen = x == x and y == y
+            xb[c, p] = x if seen else 0.0
+            yb[c, p] = y if seen else 0.0
+            wb[c, p] = w2 if seen else 0.0
+    X0 = np.empty(B)
+    X1 = np.empty(B)
+    X2 = np.empty(B)
+    solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
+    for p in range(m):
+        out[s + p, 0] = X0[p]
+        out[s + p, 1] = X1[p]
+        out[s + p, 2] = X2[p]
+
+
 @njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
 def triangulate_kernel(Rt, weights, xn, iterations, out):
     """Rt (C, 3, 4); weights (C,); xn (C, N, 2) undistorted normalised, NaN = unobserved;
     out (N, 3) mm written (NaN below two views). Blocks of points run in parallel."""
-    C = xn.shape[0]
-    N = xn.shape[1]
-    B = BLOCK
-    n_blocks = (N + B - 1) // B
+    n_blocks = (xn.shape[1] + BLOCK - 1) // BLOCK
     for blk in prange(n_blocks):
-        s = blk * B
-        m = min(B, N - s)
-        xb = np.empty((C, B))
-        yb = np.empty((C, B))
-        wb = np.empty((C, B))
-        for c in range(C):
-            w2 = weights[c] * weights[c]
-            for p in range(m):
-                x = xn[c, s + p, 0]
-                y = xn[c, s + p, 1]
-                seen = x == x and y == y
-                xb[c, p] = x if seen else 0.0
-                yb[c, p] = y if seen else 0.0
-                wb[c, p] = w2 if seen else 0.0
-        X0 = np.empty(B)
-        X1 = np.empty(B)
-        X2 = np.empty(B)
-        solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
+        _normalized_block(Rt, weights, xn, iterations, out, blk)
+
+
+@njit(cache=True, error_model="numpy")
+def triangulate_kernel_serial(Rt, weights, xn, iterations, out):
+    """:func:`triangulate_kernel` on the calling thread (no parallel region to compile or
+    enter)."""
+    n_blocks = (xn.shape[1] + BLOCK - 1) // BLOCK
+    for blk in range(n_blocks):
+        _normalized_block(Rt, weights, xn, iterations, out, blk)
+
+
+@njit(cache=True, error_model="numpy")
+def _pixels_block(K, dist, R, t, Rt, weights, uv, iterations, undistort_iterations, min_cameras,
+                  X, n_cam, resid, blk):
+    """Block ``blk`` of :func:`triangulate_pixels_kernel` (points blk * BLOCK onwards)."""
+    C = uv.shape[0]
+    N = uv.shape[1]
+    B = BLOCK
+    s = blk * B
+    m = min(B, N - s)
+    xb = np.empty((C, B))  # undistorted normalised, 0 where unobserved
+    yb = np.empty((C, B))
+    wb = np.empty((C, B))  # the camera's squared weight where observed, else 0
+    ub = np.empty((C, B))  # the pixels, 0 where unobserved
+    vb = np.empty((C, B))
+    x0 = np.empty(B)
+    y0 = np.empty(B)
+    x = np.empty(B)
+    y = np.empty(B)
+    k1 = np.empty(B)
+    k2 = np.empty(B)
+    p1 = np.empty(B)
+    p2 = np.empty(B)
+    k3 = np.empty(B)
+    views = np.zeros(B, np.int64)
+    for c in range(C):
+        k1[:] = dist[c, 0]
+        k2[:] = dist[c, 1]
+        p1[:] = dist[c, 2]
+        p2[:] = dist[c, 3]
+        k3[:] = dist[c, 4]
         for p in range(m):
-            out[s + p, 0] = X0[p]
-            out[s + p, 1] = X1[p]
-            out[s + p, 2] = X2[p]
+            u = uv[c, s + p, 0]
+            v = uv[c, s + p, 1]
+            seen = np.isfinite(u) and np.isfinite(v)
+            views[p] += seen
+            ub[c, p] = u if seen else 0.0
+            vb[c, p] = v if seen else 0.0
+            # a neutral value keeps the block's loops free of NaN
+            u = u if seen else K[c, 0, 2]
+            v = v if seen else K[c, 1, 2]
+            y0[p] = (v - K[c, 1, 2]) / K[c, 1, 1]
+            x0[p] = (u - K[c, 0, 2] - K[c, 0, 1] * y0[p]) / K[c, 0, 0]
+            x[p] = x0[p]
+            y[p] = y0[p]
+            wb[c, p] = weights[c] * weights[c] if seen else 0.0
+        undistort_rounds(x0, y0, x, y, k1, k2, p1, p2, k3, m, undistort_iterations)
+        for p in range(m):
+            ok = wb[c, p] != 0.0 and np.isfinite(x[p]) and np.isfinite(y[p])
+            xb[c, p] = x[p] if ok else 0.0
+            yb[c, p] = y[p] if ok else 0.0
+            wb[c, p] = wb[c, p] if ok else 0.0
+    X0 = np.empty(B)
+    X1 = np.empty(B)
+    X2 = np.empty(B)
+    solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
+    for p in range(m):
+        few = views[p] < min_cameras
+        X0[p] = np.nan if few else X0[p]
+        X1[p] = np.nan if few else X1[p]
+        X2[p] = np.nan if few else X2[p]
+    # reprojection residuals: project_pixel's operations, per camera over the block
+    total = np.zeros(B)
+    count = np.zeros(B, np.int64)
+    for c in range(C):
+        r00, r01, r02, r03 = R[c, 0, 0], R[c, 0, 1], R[c, 0, 2], t[c, 0]
+        r10, r11, r12, r13 = R[c, 1, 0], R[c, 1, 1], R[c, 1, 2], t[c, 1]
+        r20, r21, r22, r23 = R[c, 2, 0], R[c, 2, 1], R[c, 2, 2], t[c, 2]
+        c1, c2, c3, c4, c5 = dist[c, 0], dist[c, 1], dist[c, 2], dist[c, 3], dist[c, 4]
+        fx, sk, cx, fy, cy = K[c, 0, 0], K[c, 0, 1], K[c, 0, 2], K[c, 1, 1], K[c, 1, 2]
+        for p in range(m):
+            xc = X0[p] * r00 + X1[p] * r01 + X2[p] * r02 + r03
+            yc = X0[p] * r10 + X1[p] * r11 + X2[p] * r12 + r13
+            zc = X0[p] * r20 + X1[p] * r21 + X2[p] * r22 + r23
+            xx = xc / zc
+            yy = yc / zc
+            r2 = xx * xx + yy * yy
+            radial = 1.0 + r2 * (c1 + r2 * (c2 + r2 * c5))
+            xd = xx * radial + 2.0 * c3 * xx * yy + c4 * (r2 + 2.0 * xx * xx)
+            yd = yy * radial + c3 * (r2 + 2.0 * yy * yy) + 2.0 * c4 * xx * yy
+            du = fx * xd + sk * yd + cx - ub[c, p]
+            dv = fy * yd + cy - vb[c, p]
+            e2 = du * du + dv * dv
+            # behind the camera (z <= 0, or NaN) or unobserved: not counted
+            ok = zc > 0 and wb[c, p] != 0.0 and np.isfinite(e2)
+            total[p] += e2 if ok else 0.0
+            count[p] += ok
+    for p in range(m):
+        n = s + p
+        X[n, 0] = X0[p]
+        X[n, 1] = X1[p]
+        X[n, 2] = X2[p]
+        n_cam[n] = views[p]
+        resid[n] = np.sqrt(total[p] / count[p]) if count[p] > 0 else np.nan
 
 
 @njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
@@ -203,106 +315,42 @@ def triangulate_pixels_kernel(K, dist, R, t, Rt, weights, uv, iterations, undist
     :func:`mocap.calib.distortion_kernel.project_pixel`'s, operation for operation, laid out over
     the block's points so every loop over points vectorises. Blocks run in parallel.
     """
-    C = uv.shape[0]
-    N = uv.shape[1]
-    B = BLOCK
-    n_blocks = (N + B - 1) // B
+    n_blocks = (uv.shape[1] + BLOCK - 1) // BLOCK
     for blk in prange(n_blocks):
-        s = blk * B
-        m = min(B, N - s)
-        xb = np.empty((C, B))  # undistorted normalised, 0 where unobserved
-        yb = np.empty((C, B))
-        wb = np.empty((C, B))  # the camera's squared weight where observed, else 0
-        ub = np.empty((C, B))  # the pixels, 0 where unobserved
-        vb = np.empty((C, B))
-        x0 = np.empty(B)
-        y0 = np.empty(B)
-        x = np.empty(B)
-        y = np.empty(B)
-        k1 = np.empty(B)
-        k2 = np.empty(B)
-        p1 = np.empty(B)
-        p2 = np.empty(B)
-        k3 = np.empty(B)
-        views = np.zeros(B, np.int64)
-        for c in range(C):
-            k1[:] = dist[c, 0]
-            k2[:] = dist[c, 1]
-            p1[:] = dist[c, 2]
-            p2[:] = dist[c, 3]
-            k3[:] = dist[c, 4]
-            for p in range(m):
-                u = uv[c, s + p, 0]
-                v = uv[c, s + p, 1]
-                seen = np.isfinite(u) and np.isfinite(v)
-                views[p] += seen
-                ub[c, p] = u if seen else 0.0
-                vb[c, p] = v if seen else 0.0
-                # a neutral value keeps the block's loops free of NaN
-                u = u if seen else K[c, 0, 2]
-                v = v if seen else K[c, 1, 2]
-                y0[p] = (v - K[c, 1, 2]) / K[c, 1, 1]
-                x0[p] = (u - K[c, 0, 2] - K[c, 0, 1] * y0[p]) / K[c, 0, 0]
-                x[p] = x0[p]
-                y[p] = y0[p]
-                wb[c, p] = weights[c] * weights[c] if seen else 0.0
-            undistort_rounds(x0, y0, x, y, k1, k2, p1, p2, k3, m, undistort_iterations)
-            for p in range(m):
-                ok = wb[c, p] != 0.0 and np.isfinite(x[p]) and np.isfinite(y[p])
-                xb[c, p] = x[p] if ok else 0.0
-                yb[c, p] = y[p] if ok else 0.0
-                wb[c, p] = wb[c, p] if ok else 0.0
-        X0 = np.empty(B)
-        X1 = np.empty(B)
-        X2 = np.empty(B)
-        solve_block(Rt, xb, yb, wb, m, iterations, X0, X1, X2)
-        for p in range(m):
-            few = views[p] < min_cameras
-            X0[p] = np.nan if few else X0[p]
-            X1[p] = np.nan if few else X1[p]
-            X2[p] = np.nan if few else X2[p]
-        # reprojection residuals: project_pixel's operations, per camera over the block
-        total = np.zeros(B)
-        count = np.zeros(B, np.int64)
-        for c in range(C):
-            r00, r01, r02, r03 = R[c, 0, 0], R[c, 0, 1], R[c, 0, 2], t[c, 0]
-            r10, r11, r12, r13 = R[c, 1, 0], R[c, 1, 1], R[c, 1, 2], t[c, 1]
-            r20, r21, r22, r23 = R[c, 2, 0], R[c, 2, 1], R[c, 2, 2], t[c, 2]
-            c1, c2, c3, c4, c5 = dist[c, 0], dist[c, 1], dist[c, 2], dist[c, 3], dist[c, 4]
-            fx, sk, cx, fy, cy = K[c, 0, 0], K[c, 0, 1], K[c, 0, 2], K[c, 1, 1], K[c, 1, 2]
-            for p in range(m):
-                xc = X0[p] * r00 + X1[p] * r01 + X2[p] * r02 + r03
-                yc = X0[p] * r10 + X1[p] * r11 + X2[p] * r12 + r13
-                zc = X0[p] * r20 + X1[p] * r21 + X2[p] * r22 + r23
-                xx = xc / zc
-                yy = yc / zc
-                r2 = xx * xx + yy * yy
-                radial = 1.0 + r2 * (c1 + r2 * (c2 + r2 * c5))
-                xd = xx * radial + 2.0 * c3 * xx * yy + c4 * (r2 + 2.0 * xx * xx)
-                yd = yy * radial + c3 * (r2 + 2.0 * yy * yy) + 2.0 * c4 * xx * yy
-                du = fx * xd + sk * yd + cx - ub[c, p]
-                dv = fy * yd + cy - vb[c, p]
-                e2 = du * du + dv * dv
-                # behind the camera (z <= 0, or NaN) or unobserved: not counted
-                ok = zc > 0 and wb[c, p] != 0.0 and np.isfinite(e2)
-                total[p] += e2 if ok else 0.0
-                count[p] += ok
-        for p in range(m):
-            n = s + p
-            X[n, 0] = X0[p]
-            X[n, 1] = X1[p]
-            X[n, 2] = X2[p]
-            n_cam[n] = views[p]
-            resid[n] = np.sqrt(total[p] / count[p]) if count[p] > 0 else np.nan
+        _pixels_block(K, dist, R, t, Rt, weights, uv, iterations, undistort_iterations,
+                      min_cameras, X, n_cam, resid, blk)
+
+
+@njit(cache=True, error_model="numpy")
+def triangulate_pixels_kernel_serial(K, dist, R, t, Rt, weights, uv, iterations,
+                                     undistort_iterations, min_cameras, X, n_cam, resid):
+    """:func:`triangulate_pixels_kernel` on the calling thread (no parallel region to compile or
+    enter)."""
+    n_blocks = (uv.shape[1] + BLOCK - 1) // BLOCK
+    for blk in range(n_blocks):
+        _pixels_block(K, dist, R, t, Rt, weights, uv, iterations, undistort_iterations,
+                      min_cameras, X, n_cam, resid, blk)
+
+
+# Below this many points a call runs on the calling thread: the parallel kernels' gain there is
+# a few milliseconds, and a run that never calls them above it (the sample session; every
+# reconstruction worker, which runs one thread) never compiles them (about 3-4 CPU-s each,
+# cold). The results do not depend on the choice: both run the same block function per point.
+PARALLEL_MIN_POINTS = 65_536
+
+
+def _parallel(n_points: int) -> bool:
+    return n_points >= PARALLEL_MIN_POINTS and get_num_threads() > 1
 
 
 def triangulate_normalized(Rt: np.ndarray, weights: np.ndarray, xn: np.ndarray,
                            iterations: int = 1) -> np.ndarray:
     """(C, N, 2) undistorted normalised observations -> (N, 3); NaN below two views."""
     out = np.empty((xn.shape[1], 3))
-    triangulate_kernel(np.ascontiguousarray(Rt, dtype=np.float64),
-                       np.ascontiguousarray(weights, dtype=np.float64),
-                       np.ascontiguousarray(xn, dtype=np.float64), int(iterations), out)
+    kernel = triangulate_kernel if _parallel(xn.shape[1]) else triangulate_kernel_serial
+    kernel(np.ascontiguousarray(Rt, dtype=np.float64),
+           np.ascontiguousarray(weights, dtype=np.float64),
+           np.ascontiguousarray(xn, dtype=np.float64), int(iterations), out)
     return out
 
 
@@ -329,7 +377,7 @@ def triangulate_pixels(rig, uv: np.ndarray, *, min_cameras: int = 2, iterations:
     n_cam = np.empty(N, np.int64)
     resid = np.empty(N)
     if N:
-        triangulate_pixels_kernel(K, dist, R, t, Rt, f, uv, int(iterations),
-                                  int(undistort_iterations), max(int(min_cameras), 2), X, n_cam,
-                                  resid)
+        kernel = triangulate_pixels_kernel if _parallel(N) else triangulate_pixels_kernel_serial
+        kernel(K, dist, R, t, Rt, f, uv, int(iterations), int(undistort_iterations),
+               max(int(min_cameras), 2), X, n_cam, resid)
     return X, n_cam, resid

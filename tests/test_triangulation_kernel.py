@@ -142,3 +142,44 @@ def test_importing_the_kernels_lets_idle_threads_sleep_unless_the_user_chose():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.strip()
     assert out == "ACTIVE"
+
+
+@pytest.mark.parametrize("parallel_from", [0, 10**9])
+def test_parallel_and_serial_kernels_give_the_same_bits(monkeypatch, parallel_from):
+    """Large calls run the blocks in parallel, small ones on the calling thread: both run the same
+    block function, so the results do not depend on the choice (and both equal the reference)."""
+    import numba
+
+    from mocap.calib import triangulation_kernel as tk
+
+    rig = strong_rig(4)
+    X, uv = observations(rig, 5 * BLOCK + 3, seed=11)
+    monkeypatch.setattr(tk, "PARALLEL_MIN_POINTS", parallel_from)
+    previous = numba.get_num_threads()
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    try:
+        fast = triangulate(rig, uv, min_cameras=2)
+        xn = np.stack([c.normalize(uv[i]) for i, c in enumerate(rig)])
+        Rt = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])
+        f = np.array([c.focal_px for c in rig])
+        norm = tk.triangulate_normalized(Rt, f, xn, 1)
+    finally:
+        numba.set_num_threads(previous)
+    ref = triangulate_reference(rig, uv, min_cameras=2)
+    assert_same(fast.X, ref.X, 1e-9)
+    assert_same(fast.residual_px, ref.residual_px, 1e-9)
+    # the other kernel, called directly, gives the same bits
+    args = [np.ascontiguousarray(a, dtype=np.float64) for a in (
+        np.stack([c.K for c in rig]), np.stack([c.dist for c in rig]), np.stack([c.R for c in rig]),
+        np.stack([c.t for c in rig]), Rt, f, uv)]
+    N = uv.shape[1]
+    other = tk.triangulate_pixels_kernel_serial if parallel_from == 0 else tk.triangulate_pixels_kernel
+    Xo, no, ro = np.empty((N, 3)), np.empty(N, np.int64), np.empty(N)
+    other(*args, 1, tk.UNDISTORT_ITERATIONS, 2, Xo, no, ro)
+    np.testing.assert_array_equal(Xo, fast.X)
+    np.testing.assert_array_equal(ro, fast.residual_px)
+    np.testing.assert_array_equal(no, fast.n_cameras)
+    other_n = tk.triangulate_kernel_serial if parallel_from == 0 else tk.triangulate_kernel
+    out = np.empty((N, 3))
+    other_n(Rt, f, np.ascontiguousarray(xn), 1, out)
+    np.testing.assert_array_equal(out, norm)
