@@ -230,7 +230,7 @@ def _band_sort(keys, idx, n, keys2, idx2, start):
 
     Returns (lo, scale): key k lies in band ``q = int((k - lo) * scale)`` and band q's keys are
     ``keys[start[q]:start[q + 1]]``; scale is NaN when a key is not finite (then sorted by
-    ``np.argsort``, NaN last, and the bands are not set).
+    a stable ``np.argsort``, NaN last, and the bands are not set).
     """
     lo = hi = keys[0]
     finite = True
@@ -239,11 +239,16 @@ def _band_sort(keys, idx, n, keys2, idx2, start):
         lo = min(lo, keys[r])
         hi = max(hi, keys[r])
     if not (finite and np.isfinite(hi - lo)):
-        o = np.argsort(keys[:n])
-        keys2[:n] = keys[:n][o]
-        idx2[:n] = idx[:n][o]
-        keys[:n] = keys2[:n]
-        idx[:n] = idx2[:n]
+        # element loops, and the stable sort the labeling compiles anyway: a quicksort and
+        # array-to-array slice copies would compile ~4 CPU-s on a new install for a path
+        # real keys never take
+        o = np.argsort(keys[:n], kind="mergesort")
+        for r in range(n):
+            keys2[r] = keys[o[r]]
+            idx2[r] = idx[o[r]]
+        for r in range(n):
+            keys[r] = keys2[r]
+            idx[r] = idx2[r]
         return lo, np.nan
     scale = (n - 1) / (hi - lo) if hi > lo else 0.0
     start[: n + 1] = 0
@@ -381,8 +386,9 @@ def pair_candidates(a, b, ptr, order, n_frames, frame, xn, ray, used, bn, e1, e2
                         cap *= 2
                         pa2 = np.empty(cap, np.int64)
                         pb2 = np.empty(cap, np.int64)
-                        pa2[:m] = pa[:m]
-                        pb2[:m] = pb[:m]
+                        for q in range(m):  # (a slice copy compiles a shape check's error text)
+                            pa2[q] = pa[q]
+                            pb2[q] = pb[q]
                         pa, pb = pa2, pb2
                     pa[m] = i
                     pb[m] = jb[r]
@@ -504,7 +510,8 @@ def lex_order(views):
             s = starts[g]
             if g + 1 == n_runs:  # an odd run out: copied as it is
                 e = starts[g + 1]
-                buf[s:e] = idx[s:e]
+                for q in range(s, e):
+                    buf[q] = idx[q]
             else:
                 mid, e = starts[g + 1], starts[g + 2]
                 i, j, o = s, mid, s
