@@ -740,7 +740,8 @@ def frame_order(frame, keep):
             if keep[r]:
                 rows[k] = r
                 k += 1
-        return rows[np.argsort(frame[rows], kind="mergesort")]
+        # as float64 (exact below 2**53): the stable argsort the labeling compiles anyway
+        return rows[np.argsort(frame[rows].astype(np.float64), kind="mergesort")]
     start = np.zeros(hi - lo + 2, np.int64)
     for r in range(m):
         if keep[r]:
