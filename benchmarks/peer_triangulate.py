@@ -1,17 +1,21 @@
 """Runs inside the peer environment (aniposelib installed there, not in the project): triangulate
 the same observations with aniposelib (undistortion included) and print its throughput (best of
-three runs, one core; per wall and per CPU second) and 3D error as JSON.
+three runs, pinned to one core; per wall and per CPU second) and 3D error as JSON.
 
     python benchmarks/peer_triangulate.py CAMERAS_JSON OBS_NPZ
 """
 
 import json
+import os
 import sys
 import time
 
-import cv2
-import numpy as np
-from aniposelib.cameras import Camera, CameraGroup
+if hasattr(os, "sched_setaffinity"):  # one core, whatever threads the libraries start (XLA's)
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from aniposelib.cameras import Camera, CameraGroup  # noqa: E402
 
 
 def main() -> int:
@@ -29,7 +33,10 @@ def main() -> int:
         dt = min(dt, time.perf_counter() - t0)
         cpu = min(cpu, time.process_time() - c0)
     err = np.sqrt(np.mean(np.sum((est - X) ** 2, axis=1)))
-    print(json.dumps({"points": int(X.shape[0]), "points_per_s": X.shape[0] / dt,
+    from importlib.metadata import version
+
+    print(json.dumps({"points": int(X.shape[0]), "version": version("aniposelib"),
+                      "points_per_s": X.shape[0] / dt,
                       "points_per_cpu_s": X.shape[0] / cpu,
                       "rms_error_mm": float(err)}))
     return 0
