@@ -37,7 +37,12 @@ from mocap.atomic import write_csv, write_parquet, write_text
 from mocap.paths import check_output_path
 from mocap.reconstruct.camera_count import usable_positions
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
-from mocap.reconstruct.labeling import MarkerSet, identify_markers, trajectories_frame
+from mocap.reconstruct.labeling import (
+    MarkerSet,
+    identify_markers,
+    trajectories_frame,
+    trajectories_table,
+)
 from mocap.reconstruct.takes import (
     BlobRoles,
     CaptureCounts,
@@ -510,11 +515,9 @@ def _write_take(out: Path, store, key: str, tr: TakeReconstruction, names) -> No
     from mocap.run_cache import write_keyed_parquet
 
     path = out / "trajectories" / f"{tr.name}.parquet"
-    if store is None:
-        write_parquet(trajectories_frame(tr.labeled, names), path)
-        return
-    store.save_take(tr.name, key, (tr.labeled.stats, tr.capture, tr.roles))
-    write_keyed_parquet(trajectories_frame(tr.labeled, names), path, key)
+    if store is not None:
+        store.save_take(tr.name, key, (tr.labeled.stats, tr.capture, tr.roles))
+    write_keyed_parquet(trajectories_table(tr.labeled, names), path, key if store else "")
 
 
 def _stored_take(out: Path, store, key: str, name: str, names) -> tuple | None:

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from mocap.atomic import atomic_path, dictionary_columns, write_text
+from mocap.atomic import atomic_path, write_text
 
 STATE_DIR = ".facemocap"
 KEY_METADATA = b"facemocap_key"
@@ -199,15 +199,18 @@ def _save_pickle(path: Path, key: str, value: Any) -> None:
 
 
 def write_keyed_parquet(df, path: Path, key: str) -> Path:
-    """``df`` as Parquet (zstd) written atomically, its schema metadata holding ``key``; only
-    the columns that are not floating point dictionary-encoded, as
-    :func:`mocap.atomic.write_parquet` writes (a paper take's trajectories: 81 -> 25 ms, 20 %
-    smaller; profiled, the run's main process spent 21 s of the reconstruction's 62 writing its
-    230 takes)."""
+    """``df`` (a DataFrame or an Arrow table) as Parquet (zstd) written atomically, its schema
+    metadata holding ``key`` (none for an empty key); only the columns that are not floating
+    point dictionary-encoded, as :func:`mocap.atomic.write_parquet` writes (a paper take's
+    trajectories: 81 -> 25 ms, 20 % smaller; profiled, the run's main process spent 21 s of the
+    reconstruction's 62 writing its 230 takes)."""
     import pyarrow as pa
 
-    table = pa.Table.from_pandas(df, preserve_index=False)
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}), KEY_METADATA: key.encode()})
+    table = df if isinstance(df, pa.Table) else pa.Table.from_pandas(df, preserve_index=False)
+    if key:
+        table = table.replace_schema_metadata({**(table.schema.metadata or {}),
+                                               KEY_METADATA: key.encode()})
+    dictionary = [f.name for f in table.schema if not pa.types.is_floating(f.type)]
     with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, compression="zstd", use_dictionary=dictionary_columns(df))
+        pq.write_table(table, tmp, compression="zstd", use_dictionary=dictionary)
     return Path(path)

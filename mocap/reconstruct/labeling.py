@@ -251,16 +251,36 @@ def fill_gaps(X: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
     return X, filled
 
 
-def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
-    """Long table per OUTPUTS.md: frame, marker, x, y, z, n_cameras, residual_px, interpolated."""
+def _trajectory_columns(labeled: LabeledTake, marker) -> dict:
+    """OUTPUTS.md's columns in order, ``marker`` the (n_frames * M,) marker column given."""
     n_frames, M, _ = labeled.X.shape
-    return pd.DataFrame({
+    return {
         "frame": np.repeat(np.arange(n_frames, dtype=np.int64), M),
-        "marker": np.tile(np.asarray(names, dtype=object), n_frames),
+        "marker": marker,
         "x": labeled.X[..., 0].ravel(),
         "y": labeled.X[..., 1].ravel(),
         "z": labeled.X[..., 2].ravel(),
         "n_cameras": labeled.n_cameras.ravel(),
         "residual_px": labeled.residual_px.ravel(),
         "interpolated": labeled.interpolated.ravel(),
-    })
+    }
+
+
+def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
+    """Long table per OUTPUTS.md: frame, marker, x, y, z, n_cameras, residual_px, interpolated."""
+    n_frames = labeled.X.shape[0]
+    return pd.DataFrame(_trajectory_columns(labeled, np.tile(np.asarray(names, dtype=object),
+                                                             n_frames)))
+
+
+def trajectories_table(labeled: LabeledTake, names):
+    """:func:`trajectories_frame` as an Arrow table, for writing: the marker column decoded from
+    a dictionary of the names in Arrow (no per-row Python strings: a paper take's table and
+    Parquet file 51-61 -> 32-41 ms). Read back with pandas it is the same frame."""
+    import pyarrow as pa
+
+    n_frames, M, _ = labeled.X.shape
+    idx = pa.array(np.tile(np.arange(M, dtype=np.int32), n_frames))
+    marker = pa.DictionaryArray.from_arrays(idx, pa.array([str(n) for n in names],
+                                                          pa.large_string()))
+    return pa.table(_trajectory_columns(labeled, marker.cast(pa.large_string())))
