@@ -202,7 +202,7 @@ def pooled_rest(r_own: np.ndarray, n_own: np.ndarray, r_prior: np.ndarray, n_pri
     diff = r_prior - r_own
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = 1.0 / np.maximum(n_own, 1) + np.where(n_prior > 0, 1.0 / n_prior, np.inf)
-    C = noise_cov * scale[:, None, None] + 1e-12 * np.eye(3)
+        C = noise_cov * scale[:, None, None] + 1e-12 * np.eye(3)  # (not used where not ok)
     ok = np.isfinite(diff).all(axis=1) & (n_prior > 0) & (n_own > 0) & np.isfinite(scale)
     m2 = np.full(diff.shape[0], np.inf)
     if ok.any():
@@ -266,7 +266,9 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     d = v - r[None]
     ok = np.all(np.isfinite(d), axis=-1) & sched[:, None]
     Z = np.where(ok[..., None], d, 0.0)
-    k_mean = np.maximum(np.nanmean(np.where(ok, n_trials, np.nan), axis=0), 1)
+    with warnings.catch_warnings():  # a marker with no usable frame: NaN, and marked unseen
+        warnings.simplefilter("ignore", RuntimeWarning)
+        k_mean = np.maximum(np.nanmean(np.where(ok, n_trials, np.nan), axis=0), 1)
     second = (np.einsum("fmi,fmj->mij", Z, Z) / np.maximum(ok.sum(axis=0), 1)[:, None, None]
               - noise_cov / k_mean[:, None, None])
     unseen = ~np.isfinite(second).all(axis=(1, 2))  # a marker no sample of which is usable
@@ -282,7 +284,9 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     p = np.einsum("fmk,mk->fm", d, u)
     w = d - p[..., None] * u[None]
     # w(p) = a0 + a1 p + a2 p^2 per marker and axis, least squares over the schedule's frames
-    scale = np.nanmax(np.where(ok, np.abs(p), np.nan), axis=0)
+    with warnings.catch_warnings():  # an unseen marker's scale is NaN (its chord stays NaN)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        scale = np.nanmax(np.where(ok, np.abs(p), np.nan), axis=0)
     q = p / np.where(scale > 0, scale, 1.0)[None]  # conditioning: q in [-1, 1]
     A = np.stack([q**k for k in range(PATH_DEGREE + 1)], axis=-1)  # (n, M, degree + 1)
     A = np.where(ok[..., None], A, 0.0)
@@ -311,7 +315,9 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
         level = np.nanmean(np.where(plateau, chord, np.nan), axis=0)
     frames = max(1, int(round(NORMALISE_S * fps)))
     cs = np.where(sched[:, None], chord, np.nan)
-    k_min = np.maximum(np.nanmin(np.where(ok, n_trials, np.nan), axis=0), 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        k_min = np.maximum(np.nanmin(np.where(ok, n_trials, np.nan), axis=0), 1)
     # the smoothed maximum of pure noise over a few hundred frames reaches ~3.5 of its sd
     se = np.sqrt(np.einsum("mi,mij,mj->m", u, noise_cov, u) / k_min / frames)
     bulge, top = plateau_mask(cs, frames)

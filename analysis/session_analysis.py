@@ -190,7 +190,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         props = du_properties(avg.du, delta, avg.command, avg.fps, fit_keep, n_boot=0,
                               noise_var=noise_var, plateau=plateau)
         hold = avg.command == avg.command.max()
-        field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
+        with warnings.catch_warnings():  # a marker never seen on the hold: NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
         du_props[avg.du] = props
         papers[avg.du] = paper

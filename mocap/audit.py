@@ -107,7 +107,10 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             spreads[avg.du] = np.nanmean(avg.spread_mm, axis=0)
-    spread_m = np.nanmean(np.stack(list(spreads.values())), axis=0) if spreads else np.full(len(names), np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        spread_m = (np.nanmean(np.stack(list(spreads.values())), axis=0) if spreads
+                    else np.full(len(names), np.nan))
     frames = max(int(cap.frames), 1)
     markers = []
     for m, name in enumerate(names):

@@ -29,6 +29,7 @@ marker was not reconstructed; the first axis is time.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,8 +179,10 @@ def find_rejections(averages: list[TrialAverage], names, settings: RejectionSett
             rows.append((avg.du, names[m], "small_displacement", float(peak[m]),
                          settings.min_displacement_mm))
     if averages:
-        spread = np.stack([np.nanmean(a.spread_mm, axis=0) for a in averages])  # (n_du, M)
-        per_marker = np.nanmean(spread, axis=0)
+        with warnings.catch_warnings():  # a marker no DU's takes saw: NaN, rejected for its gaps
+            warnings.simplefilter("ignore", RuntimeWarning)
+            spread = np.stack([np.nanmean(a.spread_mm, axis=0) for a in averages])  # (n_du, M)
+            per_marker = np.nanmean(spread, axis=0)
         med = np.nanmedian(per_marker)
         mad = 1.4826 * np.nanmedian(np.abs(per_marker - med))
         threshold = max(med + settings.spread_k * mad, settings.spread_ratio * med)
