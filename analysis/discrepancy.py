@@ -641,6 +641,7 @@ class Step:
     named: bool = True  # False: kept in the model, but an alternative explains it as well
     form: str | None = None  # the effect's form, where it has several (backlash: play, stick-slip)
     interval: dict = field(default_factory=dict)  # parameter -> [lo, hi] that fit equally well
+    interval_note: str = ""  # what the interval is, where not the values that fit alike
     meaning: str = ""  # what the effect is, in the form it was named in
     reading: str = ""  # how the parameter was read from the data, where not from the fit
 
@@ -1150,8 +1151,8 @@ def shift_trend(points: list[tuple[int, int, float]]) -> dict:
     s = a_DU + k trial. points : (trial, DU, shift command units) per take and DU.
 
     Returns the slope k (command units per trial), its standard error from the scatter about the
-    fit (the takes' random shifts), the t ratio, the scatter's SD, and the counts; with fewer
-    than 3 distinct trials, only the counts."""
+    fit (the takes' random shifts), the t ratio, the scatter's SD, the residual degrees of
+    freedom and the counts; with fewer than 3 distinct trials, only the counts."""
     tr = np.array([p[0] for p in points], float)
     du = np.array([p[1] for p in points])
     v = np.array([p[2] for p in points], float)
@@ -1167,7 +1168,19 @@ def shift_trend(points: list[tuple[int, int, float]]) -> dict:
     cov = s2 * np.linalg.pinv(A.T @ A)
     se = float(np.sqrt(max(cov[0, 0], 1e-30)))
     return {**out, "slope": float(coef[0]), "slope_se": se, "t": float(coef[0] / se),
-            "scatter_sd": float(np.sqrt(s2))}
+            "scatter_sd": float(np.sqrt(s2)), "dof": int(dof)}
+
+
+DRIFT_CONFIDENCE = 0.95  # the drift's interval: this confidence from the t distribution
+
+
+def trend_interval(tr: dict, confidence: float = DRIFT_CONFIDENCE) -> list[float]:
+    """[lo, hi] of a :func:`shift_trend`'s slope: slope -+ t(confidence, dof) x its standard
+    error (the takes' shifts scattered about the trend, independently, with a common SD)."""
+    from scipy.stats import t as student
+
+    half = float(student.ppf(0.5 + 0.5 * confidence, max(int(tr["dof"]), 1))) * tr["slope_se"]
+    return [tr["slope"] - half, tr["slope"] + half]
 
 
 DRIFT_MIN_RATE = 0.5  # command units per trial: a smaller trend is no drift worth naming
@@ -1208,7 +1221,10 @@ def drift_step(data: ModelData, model: FaceModel, rms: float, untestable: dict):
             if "slope" in one:
                 per_du[int(du)] = round(one["slope"], 4)
         step = Step("drift", {"beta_per_trial": tr["slope"]}, {"beta_per_trial": tr["slope_se"]},
-                    rms, rms, [ev], 0.0, per_du)
+                    rms, rms, [ev], 0.0, per_du,
+                    interval={"beta_per_trial": trend_interval(tr)},
+                    interval_note=(f"{100 * DRIFT_CONFIDENCE:.0f} % confidence from the takes' "
+                                   "scatter about the trend"))
         return step, None
     if big and abs(tr["t"]) >= DRIFT_T_AMBIGUOUS:
         return None, {"effects": ["drift", "takeshift"], "evidence": ev,

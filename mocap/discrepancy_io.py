@@ -50,6 +50,7 @@ def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
             "uncertainty": {k: _r(v, 6) for k, v in s.uncertainty.items()},
             **({"interval": {k: [_r(a, 6), _r(b, 6)] for k, (a, b) in s.interval.items()}}
                if s.interval else {}),
+            **({"interval_note": s.interval_note} if s.interval_note else {}),
             "per_du": {str(du): _r(v, 6) for du, v in s.per_du.items()},
             "heldout_rms_before_mm": _r(s.heldout_rms_before_mm),
             "heldout_rms_after_mm": _r(s.heldout_rms_after_mm),
@@ -152,11 +153,12 @@ def result_markdown(res: DiscrepancyResult, prep: Prepared, figures: dict, meta:
             head = ("Named" if s.named else
                     "Kept in the model, not named (an alternative explains it as well)")
             edge = bool(s.evidence and s.evidence[0].get("dead_band_edge"))
-            why = ("the onset read with a rise of another shape" if edge else
-                   "fits alike: the band releases at the same command rows")
+            why = (s.interval_note or ("the onset read with a rise of another shape" if edge else
+                                       "fits alike: the band releases at the same command rows"))
             L += ["", f"**{head}: {s.effect}** ({(s.meaning or CATALOGUE[s.effect].meaning)}): " + ", ".join(
                 f"{k} = {v:.4g} +- {s.uncertainty.get(k, float('nan')):.2g} {unit}"
-                + (f" (any value in [{s.interval[k][0]:.4g}, {s.interval[k][1]:.4g}]: {why})"
+                + (f" ({'' if s.interval_note else 'any value '}in [{s.interval[k][0]:.4g}, "
+                   f"{s.interval[k][1]:.4g}]: {why})"
                    if k in s.interval else "")
                 for k, v in s.parameters.items()) +
                 f"{' (read ' + s.reading + ')' if s.reading else ''}"
