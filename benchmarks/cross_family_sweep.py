@@ -224,9 +224,12 @@ def _brief(e: dict) -> list:
 
 
 def _in_interval(row: dict, name: str) -> bool:
+    """Whether the parameter's reported interval holds the value the row scores against (what
+    the takes hold, ``realised``, where the row has it: a drift; else the truth)."""
     k = PARAM.get(name)
     iv = row.get("intervals", {}).get(k)
-    return bool(iv) and k in row["truth"] and iv[0] <= row["truth"][k] <= iv[1]
+    truth = row.get("realised", {}).get(k, row["truth"].get(k))
+    return bool(iv) and truth is not None and iv[0] <= truth <= iv[1]
 
 
 def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
