@@ -125,7 +125,7 @@ def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
 
 def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                       *, n_boot: int = 200, noise_mm: np.ndarray | None = None,
-                      noise_cov_mm2: np.ndarray | None = None) -> SessionAnalysis:
+                      noise_cov_mm2: np.ndarray | None = None, jobs: int = 1) -> SessionAnalysis:
     """Linearity, fitted responses and indices for every DU's averaged response.
 
     The paper's columns (``alpha_fwd`` ... ``linearity_mean``, ``dyssynchrony_raw``) are the
@@ -146,6 +146,8 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         with too few still frames.
     noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the fallback
         preferred over ``noise_mm``.
+    jobs : DUs analysed at once, on threads (the same results in any order; the paper preset's
+        16 DUs: 7.5 -> 4.1-4.3 s on 2).
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     du_props, papers, keeps, fitted, fields = {}, {}, {}, {}, {}
@@ -155,7 +157,9 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
     # other DUs' rest frames where they agree (``mocap.analysis.noise_corrected.pooled_rest``)
     sums = [rest_sums(a.trials, tm, a.fps) for a, tm in zip(averages, timings)]
     total = (sum(x[0] for x in sums), sum(x[1] for x in sums)) if sums else None
-    for i, avg in enumerate(averages):
+
+    def one_du(i: int):
+        avg = averages[i]
         keep = kept_markers(rejections, names, avg.du)
         timing = timings[i]
         others_n = total[1] - sums[i][1]
@@ -194,11 +198,11 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             warnings.simplefilter("ignore", RuntimeWarning)
             field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
-        du_props[avg.du] = props
-        papers[avg.du] = paper
-        keeps[avg.du] = keep
-        fitted[avg.du] = fit_keep
-        fields[avg.du] = field_mm
+        out = {"props": props}
+        out["paper"] = paper
+        out["keep"] = keep
+        out["fitted"] = fit_keep
+        out["field"] = field_mm
         kept = paper.keep
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -226,20 +230,46 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         row["n_markers_along_path"] = int(props.n_markers)
         row["dyssynchrony_step_means"] = props.dyssynchrony
         row["linearity_step_noise_mean"] = float(np.nanmean(lin_step[fit_keep])) if fit_keep.any() else np.nan
-        prop_rows.append(row)
+        out["row"] = row
         lin = paper.linearity
+        lin_du, marker_du = [], []
         for m, name in enumerate(names):
-            lin_rows.append({"du": avg.du, "marker": name, "linearity": lin[m],
+            lin_du.append({"du": avg.du, "marker": name, "linearity": lin[m],
                              "linearity_corrected": lin_c[m],
                              "max_displacement_mm": peak[m], "kept": bool(keep[m])})
             pm = props.per_marker
-            marker_rows.append({"du": avg.du, "marker": name, "alpha_fwd": pm["alpha_fwd"][m],
+            marker_du.append({"du": avg.du, "marker": name, "alpha_fwd": pm["alpha_fwd"][m],
                                 "beta_fwd": pm["beta_fwd"][m], "alpha_bwd": pm["alpha_bwd"][m],
                                 "beta_bwd": pm["beta_bwd"][m],
                                 "sensitivity": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
                                 "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
                                 "max_displacement_mm": peak[m], "kept": bool(keep[m]),
                                 "fitted": bool(fit_keep[m])})
+        return out, lin_du, marker_du
+
+    # DU by DU on threads (numpy's heavy loops run outside the GIL; the results do not depend on
+    # the order: each DU's bootstraps draw from their own seeded generator)
+    if jobs > 1 and len(averages) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # the warnings filters are the process's (catch_warnings is not thread-safe before
+        # Python 3.14): the DUs' own expected-NaN silencing would race, so the threads run with
+        # RuntimeWarnings held off as a whole and the filters restored after
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            with ThreadPoolExecutor(max_workers=min(jobs, len(averages))) as pool:
+                results = list(pool.map(one_du, range(len(averages))))
+    else:
+        results = [one_du(i) for i in range(len(averages))]
+    for avg, (out, lin_du, marker_du) in zip(averages, results):
+        du_props[avg.du] = out["props"]
+        papers[avg.du] = out["paper"]
+        keeps[avg.du] = out["keep"]
+        fitted[avg.du] = out["fitted"]
+        fields[avg.du] = out["field"]
+        prop_rows.append(out["row"])
+        lin_rows += lin_du
+        marker_rows += marker_du
     properties = pd.DataFrame(prop_rows, columns=PROPERTY_COLUMNS + [
         c for c in (prop_rows[0].keys() if prop_rows else []) if c not in PROPERTY_COLUMNS])
     linearity = pd.DataFrame(lin_rows, columns=["du", "marker", "linearity", "max_displacement_mm",

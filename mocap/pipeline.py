@@ -449,7 +449,7 @@ def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
             noise_cov = position_covariance(usable_positions(recon.takes[rest.name], min_cameras))[0]
     res = analyze_responses(list(trials.averages), names, trials.rejections, du_names,
                             n_boot=settings.bootstrap_samples, noise_mm=noise,
-                            noise_cov_mm2=noise_cov)
+                            noise_cov_mm2=noise_cov, jobs=settings.jobs)
     rejections = trials.rejections
     keep_all = kept_markers(rejections[rejections["du"].isna()], names, None)
     motions = []

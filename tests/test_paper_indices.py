@@ -533,3 +533,19 @@ def test_delta_noise_variance_matches_the_realised_error_at_rest():
     for lo, hi in ((0.15, 0.3), (0.3, 0.7), (0.7, 3.1)):
         s = (size >= lo) & (size < hi)
         assert 0.85 < err[s].mean() / pred[s].mean() < 1.25, (lo, err[s].mean() / pred[s].mean())
+
+
+def test_session_analysis_on_threads_equals_one_thread(small_sim, small_run):
+    """analyze_session's DUs on two threads give the same tables as one at a time (each DU's
+    bootstraps draw from their own seeded generator; the rows keep the DUs' order)."""
+    from mocap.pipeline import RunSettings, analyze_session
+    from mocap.session import load_session
+
+    session = load_session(small_sim / "session")
+    one = analyze_session(session, small_run.reconstruction, small_run.trials, RunSettings(jobs=1))
+    two = analyze_session(session, small_run.reconstruction, small_run.trials, RunSettings(jobs=2))
+    assert len(one.properties) >= 2
+    pd.testing.assert_frame_equal(one.properties, two.properties)
+    pd.testing.assert_frame_equal(one.linearity, two.linearity)
+    pd.testing.assert_frame_equal(one.marker_properties, two.marker_properties)
+    assert list(one.paper) == list(two.paper)
