@@ -198,11 +198,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             warnings.simplefilter("ignore", RuntimeWarning)
             field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
-        out = {"props": props}
-        out["paper"] = paper
-        out["keep"] = keep
-        out["fitted"] = fit_keep
-        out["field"] = field_mm
+        out = {"props": props, "paper": paper, "keep": keep, "fitted": fit_keep, "field": field_mm}
         kept = paper.keep
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -235,16 +231,16 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         lin_du, marker_du = [], []
         for m, name in enumerate(names):
             lin_du.append({"du": avg.du, "marker": name, "linearity": lin[m],
-                             "linearity_corrected": lin_c[m],
-                             "max_displacement_mm": peak[m], "kept": bool(keep[m])})
+                           "linearity_corrected": lin_c[m],
+                           "max_displacement_mm": peak[m], "kept": bool(keep[m])})
             pm = props.per_marker
             marker_du.append({"du": avg.du, "marker": name, "alpha_fwd": pm["alpha_fwd"][m],
-                                "beta_fwd": pm["beta_fwd"][m], "alpha_bwd": pm["alpha_bwd"][m],
-                                "beta_bwd": pm["beta_bwd"][m],
-                                "sensitivity": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
-                                "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
-                                "max_displacement_mm": peak[m], "kept": bool(keep[m]),
-                                "fitted": bool(fit_keep[m])})
+                              "beta_fwd": pm["beta_fwd"][m], "alpha_bwd": pm["alpha_bwd"][m],
+                              "beta_bwd": pm["beta_bwd"][m],
+                              "sensitivity": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
+                              "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
+                              "max_displacement_mm": peak[m], "kept": bool(keep[m]),
+                              "fitted": bool(fit_keep[m])})
         return out, lin_du, marker_du
 
     # DU by DU on threads (numpy's heavy loops run outside the GIL; the results do not depend on
