@@ -28,13 +28,13 @@ figures (visibility per marker and camera; noise floor per marker on the face) a
 from __future__ import annotations
 
 import json
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from mocap.atomic import write_text
+from mocap.reconstruct.trials import marker_spread
 
 THRESHOLDS = {
     "camera_reprojection_rms_px": {"warn": 0.2, "fail": 0.4},
@@ -102,15 +102,7 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
     med_noise = float(np.nanmedian(noise_m)) if np.isfinite(noise_m).any() else np.nan
     rej = rejections if rejections is not None else pd.DataFrame(columns=["du", "marker", "reason"])
     spread_bad = set(rej.loc[rej["reason"] == "abnormal_spread", "marker"])
-    spreads = {}
-    for avg in averages:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            spreads[avg.du] = np.nanmean(avg.spread_mm, axis=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        spread_m = (np.nanmean(np.stack(list(spreads.values())), axis=0) if spreads
-                    else np.full(len(names), np.nan))
+    spread_m = marker_spread(list(averages)) if averages else np.full(len(names), np.nan)
     frames = max(int(cap.frames), 1)
     markers = []
     for m, name in enumerate(names):

@@ -166,6 +166,14 @@ def peak_displacement(avg: TrialAverage, smooth_s: float = 0.25) -> np.ndarray:
     return peak_length(avg.mean - avg.rest_mm[None], max(1, int(round(smooth_s * avg.fps))))
 
 
+def marker_spread(averages: list[TrialAverage]) -> np.ndarray:
+    """(M,) mm each marker's inter-trial spread: the mean over the DUs of its mean over the
+    take's frames; NaN for a marker no DU's takes saw (rejected for its gaps)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(np.stack([np.nanmean(a.spread_mm, axis=0) for a in averages]), axis=0)
+
+
 def find_rejections(averages: list[TrialAverage], names, settings: RejectionSettings = RejectionSettings()
                     ) -> pd.DataFrame:
     """Rejections table (du, marker, reason, value, threshold); ``du`` is NA for all-DU rows."""
@@ -179,10 +187,7 @@ def find_rejections(averages: list[TrialAverage], names, settings: RejectionSett
             rows.append((avg.du, names[m], "small_displacement", float(peak[m]),
                          settings.min_displacement_mm))
     if averages:
-        with warnings.catch_warnings():  # a marker no DU's takes saw: NaN, rejected for its gaps
-            warnings.simplefilter("ignore", RuntimeWarning)
-            spread = np.stack([np.nanmean(a.spread_mm, axis=0) for a in averages])  # (n_du, M)
-            per_marker = np.nanmean(spread, axis=0)
+        per_marker = marker_spread(averages)
         med = np.nanmedian(per_marker)
         mad = 1.4826 * np.nanmedian(np.abs(per_marker - med))
         threshold = max(med + settings.spread_k * mad, settings.spread_ratio * med)
