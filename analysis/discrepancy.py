@@ -384,8 +384,8 @@ def fold_takes(data: ModelData, f: int) -> list[int]:
 def heldout(data: ModelData, models: list[FaceModel]) -> tuple[float, int, list[np.ndarray]]:
     """Held-out SSE (mm^2), scalar count and residuals (per take, (S, M, 3)) of fold models."""
     res = [take_residual(data, models[1 - t.fold], k) for k, t in enumerate(data.takes)]
-    count = sum(int(np.isfinite(e[:, data.used]).sum()) for e in res)
-    return float(sum(take_sse(res, data.used))), count, res
+    sse_k, count_k = _take_sums(res, data.used)
+    return float(sum(sse_k)), int(sum(count_k)), res
 
 
 def fold_sse(data: ModelData, model: FaceModel, fold: int) -> float:
@@ -1136,14 +1136,22 @@ EDGE_HELDOUT_SLACK = 0.01  # the held-out SSE with the play may exceed its null'
 #                            the edge the training fit has begun to lose: 0.5 % per command unit)
 
 
+def _take_sums(residuals: list[np.ndarray], used: np.ndarray) -> tuple[list[float], list[int]]:
+    """Each take's SSE (mm^2) over the scored markers' finite residuals and their count, from
+    per-take residuals (S, M, 3)."""
+    sse_k, count_k = [], []
+    for e in residuals:
+        u = e[:, used]
+        ok = np.isfinite(u)
+        sse_k.append(float(np.sum(u[ok] ** 2)))
+        count_k.append(int(ok.sum()))
+    return sse_k, count_k
+
+
 def take_sse(residuals: list[np.ndarray], used: np.ndarray) -> np.ndarray:
     """(n_takes,) each take's SSE (mm^2) over the scored markers' finite residuals, from
     per-take residuals (S, M, 3) (:func:`heldout` sums them)."""
-    out = []
-    for e in residuals:
-        u = e[:, used]
-        out.append(float(np.sum(u[np.isfinite(u)] ** 2)))
-    return np.array(out)
+    return np.array(_take_sums(residuals, used)[0])
 
 
 def shift_trend(points: list[tuple[int, int, float]]) -> dict:
