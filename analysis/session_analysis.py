@@ -198,7 +198,6 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             warnings.simplefilter("ignore", RuntimeWarning)
             field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
-        out = {"props": props, "paper": paper, "keep": keep, "fitted": fit_keep, "field": field_mm}
         kept = paper.keep
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -226,7 +225,6 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         row["n_markers_along_path"] = int(props.n_markers)
         row["dyssynchrony_step_means"] = props.dyssynchrony
         row["linearity_step_noise_mean"] = float(np.nanmean(lin_step[fit_keep])) if fit_keep.any() else np.nan
-        out["row"] = row
         lin = paper.linearity
         lin_du, marker_du = [], []
         for m, name in enumerate(names):
@@ -241,7 +239,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                               "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
                               "max_displacement_mm": peak[m], "kept": bool(keep[m]),
                               "fitted": bool(fit_keep[m])})
-        return out, lin_du, marker_du
+        return props, paper, keep, fit_keep, field_mm, row, lin_du, marker_du
 
     # DU by DU on threads (numpy's heavy loops run outside the GIL; the results do not depend on
     # the order: each DU's bootstraps draw from their own seeded generator)
@@ -257,13 +255,11 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                 results = list(pool.map(one_du, range(len(averages))))
     else:
         results = [one_du(i) for i in range(len(averages))]
-    for avg, (out, lin_du, marker_du) in zip(averages, results):
-        du_props[avg.du] = out["props"]
-        papers[avg.du] = out["paper"]
-        keeps[avg.du] = out["keep"]
-        fitted[avg.du] = out["fitted"]
-        fields[avg.du] = out["field"]
-        prop_rows.append(out["row"])
+    for avg, (props, paper, keep, fit_keep, field_mm, row, lin_du, marker_du) in zip(averages,
+                                                                                    results):
+        du_props[avg.du], papers[avg.du], keeps[avg.du] = props, paper, keep
+        fitted[avg.du], fields[avg.du] = fit_keep, field_mm
+        prop_rows.append(row)
         lin_rows += lin_du
         marker_rows += marker_du
     properties = pd.DataFrame(prop_rows, columns=PROPERTY_COLUMNS + [
