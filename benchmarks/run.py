@@ -79,8 +79,9 @@ def stage_calibrate() -> dict:
 
 
 # aniposelib's triangulation on one core, as ours is timed: numba, OpenMP, the BLAS behind NumPy
-# and (aniposelib >= 0.8 solves its per-point SVDs with JAX) XLA's CPU thread pool, which ran it
-# at 1.2-1.3 CPU-s per wall second otherwise
+# and (aniposelib >= 0.8 solves its per-point SVDs with JAX) XLA's CPU thread pool; these alone
+# still left it at 1.2-1.8 CPU-s per wall second, so peer_triangulate.py also pins itself to one
+# CPU (where the OS allows), which is what makes it one core
 ONE_THREAD = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1",
               "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
