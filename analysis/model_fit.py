@@ -36,6 +36,7 @@ from mocap.analysis.face_model import (
     pair_features,
     take_tables,
 )
+from mocap.analysis.curve_fit_kernel import tangent_products
 from mocap.analysis.model_effects import Effect
 from mocap.analysis.play_kernel import H_STEP, pi_logistic_from_table
 
@@ -155,6 +156,11 @@ class _Block:
     trial: np.ndarray | None = None
     branch: np.ndarray = field(default_factory=lambda: PI_BRANCH.copy())
 
+    @cached_property
+    def by_curve(self) -> np.ndarray:
+        """v curve by curve (M_n, S, 3), contiguous (the variable projection's layout)."""
+        return np.ascontiguousarray(self.v.transpose(1, 0, 2))
+
     def sub(self, cols) -> "_Block":
         return _Block(self.P, self.shift, self.v[:, cols], self.wt[:, cols], self.q, self.trial,
                       self.branch)
@@ -213,12 +219,11 @@ def _project(blk: _Block, y: np.ndarray, effects, v: np.ndarray, wt: np.ndarray)
 
     Per curve m, with the basis A_m = [y, bases(y)] (S, K+1) and weights w: the normal
     equations (A^T W A + 1e-9 I) c = A^T W v, as batched matrix products over curves."""
-    A = _path_basis(y, effects)  # (S, M, k)
-    k = A.shape[-1]
-    Am = np.ascontiguousarray(A.transpose(1, 0, 2))  # (M, S, k)
+    Am = _path_basis(y.T, effects)  # (M, S, k): curve by curve
+    k = Am.shape[-1]
     wAm = Am * wt.T[..., None]
     G = np.matmul(wAm.transpose(0, 2, 1), Am) + 1e-9 * np.eye(k)  # (M, k, k)
-    vm = np.ascontiguousarray(v.transpose(1, 0, 2))  # (M, S, 3)
+    vm = blk.by_curve if v is blk.v else np.ascontiguousarray(v.transpose(1, 0, 2))  # (M, S, 3)
     coef = np.linalg.solve(G, np.matmul(wAm.transpose(0, 2, 1), vm))  # (M, k, 3)
     em = vm - np.matmul(Am, coef)  # (M, S, 3)
     cost = np.einsum("msx,ms->m", em * em, wt.T)
@@ -242,6 +247,12 @@ def _dpred_dy(y: np.ndarray, coef: np.ndarray, effects) -> np.ndarray:
     return g
 
 
+def _basis_derivatives(y: np.ndarray, effects) -> np.ndarray:
+    """d b_k / d y of the path's extra bases (S, M, K) at responses y (S, M) (K may be 0)."""
+    db = [b for e in effects for b in e.bases_derivative(y)]
+    return np.stack(db, axis=-1) if db else np.zeros(y.shape + (0,))
+
+
 def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30,
                tol: float = 1e-6):
     """Levenberg-Marquardt over (alpha, beta[, r]) per curve; returns (p, coef, cost)."""
@@ -253,9 +264,7 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
     lam = np.full(p.shape[0], 1e-3)
     for _ in range(iters):
         # d pred / dp_j = dy/dp_j * g,  g = coef_0 + sum_k basis_k'(y) coef_k   (Kaufman)
-        g = _dpred_dy(y, coef, effects)
-        ge = np.einsum("smx,smx->sm", g, e) * wt
-        gg = np.einsum("smx,smx->sm", g, g) * wt
+        ge, gg = tangent_products(_basis_derivatives(y, effects), coef, e, wt)
         J = np.ascontiguousarray(dy[..., :npar].transpose(1, 0, 2))  # (M, S, P)
         b = np.matmul(ge.T[:, None, :], J)[:, 0]  # (M, P)
         H = np.matmul((J * gg.T[..., None]).transpose(0, 2, 1), J)  # (M, P, P)
@@ -271,12 +280,15 @@ def _lm_curves(blk: _Block, p0: np.ndarray, effects, hyst: bool, iters: int = 30
         coef_new, e_new, cost_new = _project(blk, y_new, effects, v, wt)
         better = cost_new < cost
         rel = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
-        p = np.where(better[:, None], q, p)
-        y = np.where(better[None], y_new, y)
-        dy = np.where(better[None, :, None], dy_new, dy)
-        coef = np.where(better[:, None, None], coef_new, coef)
-        e = np.where(better[None, :, None], e_new, e)
-        cost = np.where(better, cost_new, cost)
+        if better.all():  # the usual case: every curve's step taken (no copies)
+            p, y, dy, coef, e, cost = q, y_new, dy_new, coef_new, e_new, cost_new
+        elif better.any():
+            p = np.where(better[:, None], q, p)
+            y = np.where(better[None], y_new, y)
+            dy = np.where(better[None, :, None], dy_new, dy)
+            coef = np.where(better[:, None, None], coef_new, coef)
+            e = np.where(better[None, :, None], e_new, e)
+            cost = np.where(better, cost_new, cost)
         lam = np.where(better, np.maximum(lam / 4, 1e-9), lam * 6)
         if np.all((better & (rel < tol)) | (lam > 1e7)):
             break
