@@ -736,6 +736,8 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     try:
         # the base on each fold (cv_base) and on all takes, side by side with jobs > 1 (all takes
         # first: the largest fit runs beside the two folds' one after the other)
+        say(f"fitting the base model ({'+'.join(settings.base) or 'static'}) on all "
+            f"{len(data.takes)} takes and on each fold ({_on(settings.jobs, 3)})")
         whole, *folds = runner.base_fits(effects, [list(range(len(data.takes))),
                                                    fold_takes(data, 0), fold_takes(data, 1)])
         current, res = cv_fit(data, folds)
@@ -759,6 +761,11 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
         runner.close()
 
 
+def _on(jobs: int, tasks: int) -> str:
+    n = max(1, min(int(jobs), tasks))
+    return "in this process" if n == 1 else f"on {n} processes"
+
+
 def _steps(data, prep, settings, current, res, stages, residual_sets, stage_models, untestable,
            steps, named, evidence, runner, say) -> DiscrepancyResult:
     floor = prep.noise_floor_mm
@@ -779,6 +786,8 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                 continue
             todo.append(name)
         current.residuals = res
+        if todo:
+            say(f"trying {', '.join(todo)} ({_on(settings.jobs, len(todo))})")
         for name, cv, t_c in runner.map(current, todo, floor):
             if cv is None:
                 evidence.append({"effect": name, "testable": True, "screened_out": True,
