@@ -22,6 +22,14 @@ BLOCK = 256  # points undistorted together (buffers of a few kB: they stay in L1
 
 
 @njit(cache=True, error_model="numpy")
+def undistort_buffers(B):
+    """The nine (B,) work arrays of :func:`undistort_rounds`, uninitialised: x0, y0, x, y, k1,
+    k2, p1, p2, k3."""
+    return (np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B),
+            np.empty(B), np.empty(B), np.empty(B))
+
+
+@njit(cache=True, error_model="numpy")
 def undistort_rounds(x0, y0, x, y, k1, k2, p1, p2, k3, m, iterations):
     """Fixed-point undistortion of the block's first ``m`` points, in place.
 
@@ -81,15 +89,12 @@ def undistort_pixels(uv, K, dist, iterations):
     n = uv.shape[0]
     out = np.empty((n, 2))
     B = BLOCK
-    x0 = np.empty(B)
-    y0 = np.empty(B)
-    x = np.empty(B)
-    y = np.empty(B)
-    k1 = np.full(B, dist[0])
-    k2 = np.full(B, dist[1])
-    p1 = np.full(B, dist[2])
-    p2 = np.full(B, dist[3])
-    k3 = np.full(B, dist[4])
+    x0, y0, x, y, k1, k2, p1, p2, k3 = undistort_buffers(B)
+    k1[:] = dist[0]
+    k2[:] = dist[1]
+    p1[:] = dist[2]
+    p2[:] = dist[3]
+    k3[:] = dist[4]
     bad = np.zeros(B, np.bool_)
     for s in range(0, n, B):
         m = min(B, n - s)

@@ -29,7 +29,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 from numba import get_num_threads, njit, prange  # noqa: E402
 
-from mocap.calib.distortion_kernel import BLOCK, undistort_rounds  # noqa: E402
+from mocap.calib.distortion_kernel import (  # noqa: E402
+    BLOCK,
+    undistort_buffers,
+    undistort_rounds,
+)
 
 
 @njit(cache=True, error_model="numpy")
@@ -219,15 +223,7 @@ def _pixels_block(K, dist, R, t, Rt, weights, uv, iterations, undistort_iteratio
     wb = np.empty((C, B))  # the camera's squared weight where observed, else 0
     ub = np.empty((C, B))  # the pixels, 0 where unobserved
     vb = np.empty((C, B))
-    x0 = np.empty(B)
-    y0 = np.empty(B)
-    x = np.empty(B)
-    y = np.empty(B)
-    k1 = np.empty(B)
-    k2 = np.empty(B)
-    p1 = np.empty(B)
-    p2 = np.empty(B)
-    k3 = np.empty(B)
+    x0, y0, x, y, k1, k2, p1, p2, k3 = undistort_buffers(B)
     views = np.zeros(B, np.int64)
     for c in range(C):
         k1[:] = dist[c, 0]

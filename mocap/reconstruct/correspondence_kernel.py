@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from mocap.calib.distortion_kernel import BLOCK as _BLOCK
-from mocap.calib.distortion_kernel import project_pixel, undistort_rounds
+from mocap.calib.distortion_kernel import project_pixel, undistort_buffers, undistort_rounds
 
 N_CELLS = 64  # column bands per image in the nearest-blob search
 
@@ -38,15 +38,7 @@ def normalize_blobs(uv, cam, K, dist, R, iterations):
     xn = np.empty((n, 2))
     ray = np.empty((n, 3))
     B = _BLOCK
-    x0 = np.empty(B)
-    y0 = np.empty(B)
-    x = np.empty(B)
-    y = np.empty(B)
-    k1 = np.empty(B)
-    k2 = np.empty(B)
-    p1 = np.empty(B)
-    p2 = np.empty(B)
-    k3 = np.empty(B)
+    x0, y0, x, y, k1, k2, p1, p2, k3 = undistort_buffers(B)
     for s in range(0, n, B):
         m = min(B, n - s)
         for p in range(m):
