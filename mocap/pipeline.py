@@ -350,8 +350,12 @@ def _map_takes(session, names: list[str], calibration, markers, settings: RunSet
                              initializer=_worker_init) as pool:
         futures = [pool.submit(_one_take, session, name, slim, markers, settings,
                                name in recorded) for name in names]
-        for fut in as_completed(futures):
-            yield fut.result()
+        try:
+            for fut in as_completed(futures):
+                yield fut.result()
+        finally:  # a take that fails stops the run now: the takes not started are dropped
+            for fut in futures:  # (leaving the pool would otherwise run every one of them)
+                fut.cancel()
 
 
 def assemble(session: Session, markers: MarkerSet, takes: Mapping[str, TakeReconstruction],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -191,3 +192,32 @@ def test_worker_processes_give_the_in_process_result(tiny_sim, monkeypatch):
     for name, take in serial.takes.items():
         np.testing.assert_array_equal(parallel.takes[name].X, take.X, err_msg=name)
     assert parallel.noise_floor_mm == serial.noise_floor_mm
+
+
+def test_a_damaged_take_stops_a_parallel_reconstruction_with_its_file_named(
+        tiny_sim, tmp_path, monkeypatch):
+    """A take that cannot be read, reconstructed on worker processes, stops the run with the
+    same error as in-process (the file and row named), not a worker's traceback."""
+    import shutil
+
+    import mocap
+    import mocap.pipeline as pipeline
+    from mocap.session import SessionError
+
+    root = tmp_path / "session"
+    shutil.copytree(tiny_sim / "session", root)
+    session = mocap.load_session(root)
+    face = [t for t in session.takes if t.kind in pipeline.FACE_KINDS]
+    bad = face[len(face) // 2]
+    df = pd.read_parquet(bad.file) if str(bad.file).endswith(".parquet") else pd.read_csv(bad.file)
+    df.loc[len(df) // 2, "camera"] = "no-such-camera"
+    if str(bad.file).endswith(".parquet"):
+        df.to_parquet(bad.file, index=False)
+    else:
+        df.to_csv(bad.file, index=False)
+    calibration = mocap.calibrate(mocap.load_session(root))
+    monkeypatch.setattr(pipeline, "PARALLEL_MIN_BYTES", 0)
+    for jobs in (1, 2):
+        with pytest.raises(SessionError, match="no-such-camera") as err:
+            mocap.reconstruct(mocap.load_session(root), calibration, jobs=jobs)
+        assert Path(bad.file).name in str(err.value)
