@@ -611,6 +611,9 @@ class _Composer:
                  bars: bool | None, store, writers: RunWriters = RunWriters()):
         self.session, self.out, self.settings = session, out, settings
         self.say, self.bars, self.store, self.writers = say, bars, store, writers
+        if store is not None:  # every input file hashed at once, on the run's cores
+            store.fingerprints.prefetch([p for t in session.takes for p in (t.file, t.commands)],
+                                        settings.jobs)
         self.keys = (_Keys(session, settings, store.fingerprints, writers) if store is not None
                      else None)
         self.timings: dict[str, float] = {}

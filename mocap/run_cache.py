@@ -123,6 +123,42 @@ class Fingerprints:
         self._dirty = True
         return digest
 
+    def prefetch(self, paths, jobs: int = 1) -> None:
+        """Hash the files of ``paths`` that are not remembered yet, on up to ``jobs`` threads
+        (hashlib lets go of the GIL while it hashes: a paper session's 461 files, 648 MB, took
+        1.3 s on one thread before anything else could start). Files that cannot be read are
+        left to :meth:`__call__`, which reports them."""
+        todo = []
+        for path in {Path(p).resolve() for p in paths if p is not None}:
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            stamp = [st.st_size, st.st_mtime_ns]
+            entry = self.memo.get(str(path))
+            if entry is None or entry[:2] != stamp:
+                todo.append((path, stamp))
+        if not todo:
+            return
+
+        def digest(item):
+            try:
+                return file_hash(item[0])
+            except OSError:
+                return None
+
+        if jobs > 1 and len(todo) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(min(int(jobs), len(todo))) as pool:
+                digests = list(pool.map(digest, todo))
+        else:
+            digests = [digest(item) for item in todo]
+        for (path, stamp), value in zip(todo, digests):
+            if value is not None:
+                self.memo[str(path)] = stamp + [value]
+                self._dirty = True
+
     def save(self) -> None:
         if self._dirty and self.memo_path is not None:
             write_text(self.memo_path, json.dumps(self.memo))

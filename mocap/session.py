@@ -266,8 +266,8 @@ class Session:
 
         Returns
         -------
-        DataFrame in file order. 2D: ``frame`` int64, ``camera`` str, ``x``, ``y`` float64 px
-        (finite). 3D: ``frame`` int64, ``marker`` str, ``x``, ``y``, ``z`` float64 mm (NaN when
+        DataFrame in file order. 2D: ``frame`` int64, ``camera`` categorical (categories: the
+        manifest's camera ids, in its order), ``x``, ``y`` float64 px (finite). 3D: ``frame`` int64, ``marker`` str, ``x``, ``y``, ``z`` float64 mm (NaN when
         the marker was not seen).
 
         Raises
@@ -895,7 +895,9 @@ def _diagnose_csv_structure(src: _Source, n_columns: int) -> None:
 
 
 def _read_columns(src: _Source, spec: Mapping[str, str]) -> pa.Table:
-    """Read the columns of ``spec`` (name -> "num" | "str") as an Arrow table.
+    """Read the columns of ``spec`` (name -> "num" | "str" | "dict") as an Arrow table ("dict":
+    strings, read from Parquet as a dictionary: a column of few distinct values, such as camera
+    ids, then costs one check per value instead of per row; :func:`_camera_column`).
 
     CSV is read by pyarrow with typed columns; when that fails (a malformed row, a value that
     is not a number), the file is checked row by row to name the offending line, then read as
@@ -931,7 +933,8 @@ def _read_columns(src: _Source, spec: Mapping[str, str]) -> pa.Table:
         except (OSError, pa.ArrowException) as exc:
             raise SessionError(f"{src.label}: cannot be read as CSV ({exc})") from None
     try:
-        return pq.read_table(src.path, columns=names)
+        return pq.read_table(src.path, columns=names,
+                             read_dictionary=[n for n in names if spec[n] == "dict"] or None)
     except (OSError, pa.ArrowException) as exc:
         raise SessionError(f"{src.label}: cannot be read as Parquet ({exc})") from None
 
@@ -1001,6 +1004,51 @@ def _string_column(src: _Source, table: pa.Table, name: str) -> pa.ChunkedArray:
     return pc.utf8_trim_whitespace(col)
 
 
+def _camera_column(src: _Source, table: pa.Table, name: str, camera_ids: Sequence[str]
+                   ) -> pd.Categorical:
+    """Column ``name`` as a Categorical whose categories are ``camera_ids`` (the manifest's
+    order), whitespace-trimmed; SessionError naming the row of a missing value, of bytes that
+    are not UTF-8 or of an id not in the manifest. A dictionary column (Parquet's usual encoding
+    of such a column) is checked on its distinct values (a paper take: 400 k rows, 6 values),
+    any other through :func:`_string_column`."""
+    col = table.column(name)
+    if not pa.types.is_dictionary(col.type):
+        col = pc.dictionary_encode(_string_column(src, table, name))
+    elif not (pa.types.is_string(col.type.value_type)
+              or pa.types.is_large_string(col.type.value_type)):
+        raise SessionError(f"{src.label}: column {name!r} has type {col.type}, expected strings")
+    col = col.unify_dictionaries()
+    if col.null_count:
+        i = int(np.argmax(col.is_null().to_numpy(zero_copy_only=False)))
+        raise SessionError(f"{src.where(i)}: {name} is missing, expected a string")
+    values = col.chunk(0).dictionary
+    rows = np.concatenate([c.indices.to_numpy(zero_copy_only=False) for c in col.chunks])
+    if pa.types.is_large_string(values.type):
+        values = pc.cast(values, pa.string())
+    try:  # Parquet readers do not check that string bytes are UTF-8; Arrow's kernels need it
+        values.validate(full=True)
+    except pa.ArrowInvalid:
+        for j in range(len(values)):
+            try:
+                values.slice(j, 1).validate(full=True)
+            except pa.ArrowInvalid:
+                i = int(np.argmax(rows == j))
+                raw = pc.cast(values.slice(j, 1), pa.binary())[0].as_py()
+                raise SessionError(
+                    f"{src.where(i)}: {name} {raw!r} is not UTF-8 text (a damaged file?)"
+                ) from None
+    trimmed = pc.utf8_trim_whitespace(values).to_pylist()
+    lookup = pd.Index(list(camera_ids)).get_indexer(trimmed)
+    codes = lookup[rows]
+    if (codes < 0).any():
+        i = int(np.argmax(codes < 0))
+        raise SessionError(
+            f"{src.where(i)}: camera {trimmed[rows[i]]!r} is not in the manifest "
+            f"(cameras: {', '.join(camera_ids)})"
+        )
+    return pd.Categorical.from_codes(codes, categories=list(camera_ids))
+
+
 def _show_number(value: float) -> str:
     value = float(value)
     return str(int(value)) if math.isfinite(value) and value.is_integer() else repr(value)
@@ -1031,6 +1079,19 @@ def _integer_values(src, name, values, *, minimum=None, maximum=None, expected) 
     return values.astype(np.int64)
 
 
+def _frame_column(src: _Source, table: pa.Table) -> np.ndarray:
+    """The ``frame`` column as int64 (integers from 0 to 2**53); SessionError naming the row of
+    any other value. An integer column without gaps is checked as it is, without the float64
+    round trip the general path (text, floats) takes."""
+    col = table.column("frame")
+    if pa.types.is_integer(col.type) and col.null_count == 0:
+        values = col.to_numpy()
+        if values.min() >= 0 and values.max() <= _MAX_INT:
+            return values.astype(np.int64, copy=False)
+    return _integer_values(src, "frame", _float_column(src, table, "frame"), minimum=0,
+                           maximum=_MAX_INT, expected="an integer frame >= 0")
+
+
 def _finite_values(src, name, values, *, allow_nan: bool, expected: str) -> None:
     bad = np.isinf(values) if allow_nan else ~np.isfinite(values)
     if bad.any():
@@ -1046,24 +1107,10 @@ def _check_not_empty(src: _Source, table: pa.Table, what: str) -> None:
 
 
 def _read_take_2d(src: _Source, camera_ids: Sequence[str]) -> pd.DataFrame:
-    table = _read_columns(src, {"frame": "num", "camera": "str", "x": "num", "y": "num"})
+    table = _read_columns(src, {"frame": "num", "camera": "dict", "x": "num", "y": "num"})
     _check_not_empty(src, table, "detections")
-    frame = _integer_values(
-        src,
-        "frame",
-        _float_column(src, table, "frame"),
-        minimum=0,
-        maximum=_MAX_INT,
-        expected="an integer frame >= 0",
-    )
-    camera = _string_column(src, table, "camera")
-    known = pc.is_in(camera, value_set=pa.array(list(camera_ids), pa.string()))
-    if not pc.all(known).as_py():
-        i = int(np.argmin(known.to_numpy(zero_copy_only=False)))
-        raise SessionError(
-            f"{src.where(i)}: camera {camera[i].as_py()!r} is not in the manifest "
-            f"(cameras: {', '.join(camera_ids)})"
-        )
+    frame = _frame_column(src, table)
+    camera = _camera_column(src, table, "camera", camera_ids)
     x = _float_column(src, table, "x")
     y = _float_column(src, table, "y")
     for name, values in (("x", x), ("y", y)):
@@ -1074,7 +1121,7 @@ def _read_take_2d(src: _Source, camera_ids: Sequence[str]) -> pd.DataFrame:
             allow_nan=False,
             expected="a finite blob coordinate, px; 2D detections cannot be missing",
         )
-    return pd.DataFrame({"frame": frame, "camera": camera.to_pandas(), "x": x, "y": y})
+    return pd.DataFrame({"frame": frame, "camera": camera, "x": x, "y": y})
 
 
 def _read_take_3d(src: _Source) -> pd.DataFrame:
@@ -1082,14 +1129,7 @@ def _read_take_3d(src: _Source) -> pd.DataFrame:
         src, {"frame": "num", "marker": "str", "x": "num", "y": "num", "z": "num"}
     )
     _check_not_empty(src, table, "marker samples")
-    frame = _integer_values(
-        src,
-        "frame",
-        _float_column(src, table, "frame"),
-        minimum=0,
-        maximum=_MAX_INT,
-        expected="an integer frame >= 0",
-    )
+    frame = _frame_column(src, table)
     marker = _string_column(src, table, "marker")
     empty = pc.equal(pc.utf8_length(marker), 0)
     if pc.any(empty).as_py():

@@ -280,3 +280,34 @@ def test_one_of_many_simultaneous_runs_gets_the_lock(tmp_path):
                               stdout=subprocess.PIPE, text=True) for _ in range(6)]
     outcomes = sorted(p.communicate(timeout=120)[0].strip() for p in procs)
     assert outcomes == ["got it"] + ["refused"] * 5
+
+
+def test_files_hashed_ahead_on_threads_match_one_by_one(tmp_path):
+    """``Fingerprints.prefetch`` (the run hashes every input file at once, on its cores) gives
+    each file the digest hashlib gives it alone, rehashes a file changed since, and leaves a
+    missing file to the per-file call, which reports it."""
+    import hashlib
+
+    from mocap.run_cache import Fingerprints
+
+    rng = np.random.default_rng(0)
+    files = []
+    for i in range(6):
+        p = tmp_path / f"f{i}.bin"
+        p.write_bytes(rng.bytes(int(rng.integers(1, 300_000))))
+        files.append(p)
+    fp = Fingerprints(tmp_path / "memo.json")
+    fp.prefetch(files + [tmp_path / "missing.bin"], jobs=2)
+
+    def plain(p):
+        return hashlib.blake2b(p.read_bytes(), digest_size=20).hexdigest()
+
+    assert {str(p.resolve()) for p in files} == set(fp.memo)
+    for p in files:
+        assert fp.memo[str(p.resolve())][2] == plain(p)
+        assert fp(p) == plain(p)
+    files[2].write_bytes(b"changed, and of another size")
+    fp.prefetch(files, jobs=2)
+    assert fp(files[2]) == plain(files[2])
+    with pytest.raises(FileNotFoundError):
+        fp(tmp_path / "missing.bin")

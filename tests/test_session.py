@@ -608,3 +608,69 @@ def test_command_matrix_no_frames_or_rows():
     empty = pd.DataFrame({"time_s": [], "du": [], "command": []})
     assert command_matrix(empty, 100.0, 4, [1, 4]).tolist() == [[0, 0]] * 4
     assert command_matrix(empty, 100.0, 0, [1, 4]).shape == (0, 2)
+
+
+def test_2d_take_reads_alike_from_csv_and_every_parquet_string_encoding(tmp_path):
+    """A take's blobs read the same from CSV, from Parquet with the camera column
+    dictionary-encoded (pyarrow's default, read as a dictionary and checked per distinct id) or
+    plain, and with ids padded by spaces: camera a categorical over the manifest's ids in its
+    order, frame int64, x and y float64."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    expected = None
+    for kind in ("csv", "parquet-dict", "parquet-plain", "parquet-padded"):
+        spec = sb.session_2d("csv" if kind == "csv" else "parquet")
+        root = write(spec, tmp_path / kind)
+        if kind != "csv":
+            path = root / spec.take_file("rest")
+            table = pq.read_table(path)
+            if kind == "parquet-padded":
+                cams = [f"  {c} " for c in table.column("camera").to_pylist()]
+                i = table.schema.get_field_index("camera")
+                table = table.set_column(i, "camera", pa.array(cams, pa.string()))
+            pq.write_table(table, path, use_dictionary=kind != "parquet-plain")
+        session = load_session(root)
+        df = session.read_take("rest")
+        assert isinstance(df["camera"].dtype, pd.CategoricalDtype)
+        assert list(df["camera"].cat.categories) == list(session.camera_ids)
+        assert [str(t) for t in df.dtypes[["frame", "x", "y"]]] == ["int64", "float64", "float64"]
+        plain = df.assign(camera=df["camera"].astype(str))
+        if expected is None:
+            expected = plain
+            truth = spec.table("rest")
+            assert list(plain["camera"]) == [c.strip() for c in truth["camera"]]
+            np.testing.assert_array_equal(plain["x"], truth["x"].astype(float))
+        else:
+            pd.testing.assert_frame_equal(plain, expected, obj=kind)
+
+
+@pytest.mark.parametrize("use_dictionary", [True, False])
+def test_parquet_camera_not_in_manifest_and_negative_frame_named_by_row(tmp_path,
+                                                                         use_dictionary):
+    """The Parquet fast paths (a dictionary camera column, an integer frame column) name the
+    row of a bad value as the general path does."""
+    import pyarrow.parquet as pq
+
+    spec = sb.session_2d("parquet")
+    root = write(spec, tmp_path / "cam")
+    path = root / spec.take_file("rest")
+    df = pq.read_table(path).to_pandas()
+    df.loc[5, "camera"] = "cam9"
+    pq.write_table(pa_table(df), path, use_dictionary=use_dictionary)
+    with pytest.raises(SessionError, match=r"takes/rest\.parquet row 6: camera 'cam9' is not "
+                                           r"in the manifest \(cameras: cam1, cam2\)"):
+        load_session(root).read_take("rest")
+    df = pq.read_table(path).to_pandas()
+    df.loc[5, "camera"] = df.loc[4, "camera"]
+    df["frame"] = df["frame"].astype("int64")
+    df.loc[7, "frame"] = -3
+    pq.write_table(pa_table(df), path, use_dictionary=use_dictionary)
+    with pytest.raises(SessionError, match=r"takes/rest\.parquet row 8: frame -3 is negative"):
+        load_session(root).read_take("rest")
+
+
+def pa_table(df):
+    import pyarrow as pa
+
+    return pa.Table.from_pandas(df, preserve_index=False)

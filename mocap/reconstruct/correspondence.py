@@ -69,9 +69,12 @@ class Points3D:
 def blob_camera_index(camera: pd.Series, camera_ids) -> np.ndarray:
     """(n,) int index into ``camera_ids`` of every blob's camera id, -1 for ids not in the list.
 
-    As :func:`mocap.calib.camera.camera_index`, in one pyarrow pass over string columns (a take's
-    Arrow-backed ``camera`` column is not copied): ~4 x faster on a paper take's 400 k blobs.
+    As :func:`mocap.calib.camera.camera_index`: through the categories of a categorical column
+    (what ``Session.read_take`` returns), in one pyarrow pass over a string column (~4 x faster
+    than the categorical route on a paper take's 400 k blobs).
     """
+    if isinstance(getattr(camera, "dtype", None), pd.CategoricalDtype):
+        return camera_index(camera, camera_ids)
     arr = pa.array(camera, from_pandas=True)
     if not (pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type)):
         return camera_index(camera, camera_ids)
