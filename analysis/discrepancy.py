@@ -42,6 +42,7 @@ Pure computations on :class:`mocap.analysis.model_fit.ModelData`; I/O is in :mod
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -594,13 +595,13 @@ class _Runner:
             self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
                                             initializer=_init_worker, initargs=(data,))
 
-    def base_fits(self, effects, takes_sets) -> list[FaceModel]:
-        """:func:`fit_base` on each set of takes, side by side in the pool (one after the other
-        without one); submitted in the order given, so the largest set should come first."""
+    def base_fits(self, effects, takes_sets) -> list:
+        """:func:`fit_base` on each set of takes: FaceModels, one after the other without a
+        pool; with one, Futures of them, submitted in the order given (so the fits needed first
+        should come first) and running while the caller goes on."""
         if self.pool is None:
             return [fit_base(self.data, effects, t) for t in takes_sets]
-        futures = [self.pool.submit(_base_task, effects, t) for t in takes_sets]
-        return [f.result() for f in futures]
+        return [self.pool.submit(_base_task, effects, t) for t in takes_sets]
 
     def map(self, current: CVFit, names: list[str], floor: float | None = None):
         if self.pool is None:
@@ -734,13 +735,15 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     effects = make_effects(settings.base)
     runner = _Runner(data, settings.jobs)
     try:
-        # the base on each fold (cv_base) and on all takes, side by side with jobs > 1 (all takes
-        # first: the largest fit runs beside the two folds' one after the other)
+        # the base on each fold (cv_base) and on all takes, side by side with jobs > 1: the
+        # folds first, which the candidates' screens need; the fit on all takes, needed only
+        # once a candidate is judged, runs beside the first screens (on the paper preset one
+        # worker waited 47 s for it before, the whole fit going first)
         say(f"fitting the base model ({'+'.join(settings.base) or 'static'}) on all "
             f"{len(data.takes)} takes and on each fold ({_on(settings.jobs, 3)})")
-        whole, *folds = runner.base_fits(effects, [list(range(len(data.takes))),
-                                                   fold_takes(data, 0), fold_takes(data, 1)])
-        current, res = cv_fit(data, folds)
+        *folds, whole = runner.base_fits(effects, [fold_takes(data, 0), fold_takes(data, 1),
+                                                   list(range(len(data.takes)))])
+        current, res = cv_fit(data, [_settle(f) for f in folds])
         stages = [_stage(data, current, res, floor, "+".join(settings.base) or "static",
                          prep.phase_labels)]
         residual_sets = [res]
@@ -759,6 +762,11 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
                       untestable, steps, named, evidence, runner, say)
     finally:
         runner.close()
+
+
+def _settle(model):
+    """A model that may still be fitting in the runner's pool (a Future), waited for."""
+    return model.result() if isinstance(model, Future) else model
 
 
 def _on(jobs: int, tasks: int) -> str:
@@ -811,6 +819,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
         # all takes alike, and kept the dead-band step from reading the play)
         t_c = time.perf_counter()
         all_takes = list(range(len(data.takes)))
+        stage_models[0] = _settle(stage_models[0])
         full = stage_models[-1]
         best = prof = None
         for item in sorted(ok, key=lambda e: e["score"]):
@@ -879,6 +888,7 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
                                     if prof.interval else {})))
         say(f"{'kept' if alt else 'named'} {name} {params}: held-out RMS {before:.4f} -> "
             f"{current.rms_mm:.4f} mm")
+    stage_models[0] = _settle(stage_models[0])
     # a backlash the base's density absorbed: the edge of a forced play's profile
     if "backlash" in settings.candidates and "backlash" not in untestable:
         step, cv, alt, model, item = dead_band_step(data, stage_models[-1], current, floor, say)

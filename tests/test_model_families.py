@@ -313,7 +313,8 @@ def test_coupling_of_a_shape_the_model_has_no_law_for(tmp_path):
 
 def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
     """With workers (jobs > 1) the workflow fits the base on each fold and on all takes side by
-    side in its pool: the same model as fitted in this process."""
+    side in its pool, handed back while they fit (Futures: the candidates' screens start once
+    the folds are done): the same model as fitted in this process."""
     from mocap.analysis.discrepancy import _Runner, fit_base, fold_takes
 
     root, _ = _session(tmp_path_factory, "pi-bow", "none")
@@ -322,7 +323,8 @@ def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
     here = fit_base(data, effects, fold_takes(data, 1))
     runner = _Runner(data, 2)
     try:
-        (pooled,) = runner.base_fits(effects, [fold_takes(data, 1)])
+        (pending,) = runner.base_fits(effects, [fold_takes(data, 1)])
+        pooled = pending.result()
     finally:
         runner.close()
     for name in ("alpha", "beta", "r", "D", "B", "density", "branch"):
