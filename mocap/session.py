@@ -267,8 +267,9 @@ class Session:
         Returns
         -------
         DataFrame in file order. 2D: ``frame`` int64, ``camera`` categorical (categories: the
-        manifest's camera ids, in its order), ``x``, ``y`` float64 px (finite). 3D: ``frame`` int64, ``marker`` str, ``x``, ``y``, ``z`` float64 mm (NaN when
-        the marker was not seen).
+        manifest's camera ids, in its order), ``x``, ``y`` float64 px (finite). 3D: ``frame``
+        int64, ``marker`` str, ``x``, ``y``, ``z`` float64 mm (NaN when the marker was not
+        seen).
 
         Raises
         ------
@@ -1081,8 +1082,8 @@ def _integer_values(src, name, values, *, minimum=None, maximum=None, expected) 
 
 def _frame_column(src: _Source, table: pa.Table) -> np.ndarray:
     """The ``frame`` column as int64 (integers from 0 to 2**53); SessionError naming the row of
-    any other value. An integer column without gaps is checked as it is, without the float64
-    round trip the general path (text, floats) takes."""
+    any other value. An integer column with no missing value is checked as it is, without the
+    float64 round trip the general path (text, floats) takes."""
     col = table.column("frame")
     if pa.types.is_integer(col.type) and col.null_count == 0:
         values = col.to_numpy()
