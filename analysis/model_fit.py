@@ -239,11 +239,9 @@ def _dpred_dy(y: np.ndarray, coef: np.ndarray, effects) -> np.ndarray:
     """d pred / d y (S, M, 3) of the path d = y D + sum_k b_k(y) B_k: D + sum_k b_k'(y) B_k, for
     responses y (S, M) and coefficients coef (M, K + 1, 3) = [D, B_1, ...]."""
     g = np.broadcast_to(coef[None, :, 0, :], y.shape + (3,))
-    kk = 1
-    for ef in effects:
-        for db in ef.bases_derivative(y):
-            g = g + db[..., None] * coef[None, :, kk, :]
-            kk += 1
+    db = _basis_derivatives(y, effects)
+    for k in range(db.shape[-1]):
+        g = g + db[..., k, None] * coef[None, :, k + 1, :]
     return g
 
 

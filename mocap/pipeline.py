@@ -34,6 +34,7 @@ import pandas as pd
 
 from mocap import __version__
 from mocap.atomic import write_csv, write_parquet, write_text
+from mocap.calib.camera import CameraRig
 from mocap.paths import check_output_path
 from mocap.reconstruct.camera_count import usable_positions
 from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
@@ -326,7 +327,7 @@ def _take_bytes(session, names: list[str]) -> int:
 class _RigOnly:
     """What a take's reconstruction reads of a calibration (``_one_take``)."""
 
-    rig: object
+    rig: CameraRig
     quality: dict
 
 
