@@ -222,13 +222,17 @@ class RunWriters:
         ``bars``: as :func:`run`'s; ``jobs``: processes it may use, ``RunSettings.jobs``)
     audit_figures(out, audit, reconstruction, calibration) -> list[Path]
         the audit's figures into ``out/figures`` (``calibration`` None for 3D sessions)
-    recording(path, result) -> Path
-        the Rerun recording of the :class:`RunResult` (written when ``settings.recording``)
+    recording(path, result) -> writer
+        the Rerun recording (written when ``settings.recording``), started as soon as the takes
+        are reconstructed: ``result`` is a :class:`RunResult` holding the session, settings,
+        calibration and reconstruction (trials, analysis and audit None); the writer's
+        ``finish(result) -> Path`` is given the complete result and commits the file, its
+        ``abort()`` removes it (``mocap.recording.RecordingWriter``)
     """
 
     analysis_figures: Callable[..., list[Path]] | None = None
     audit_figures: Callable[..., list[Path]] | None = None
-    recording: Callable[[Path, RunResult], Path] | None = None
+    recording: Callable[[Path, RunResult], object] | None = None
 
 
 # --- stages ----------------------------------------------------------------------------------
@@ -621,17 +625,24 @@ class _Composer:
         self.reused: list[str] = []
         self.computed: list[str] = []
 
+    def _saved(self, name: str) -> tuple[bool, object]:
+        """(True, (value, files)) when the stage's saved result has its key and files."""
+        if self.store is None:
+            return False, None
+        hit, saved = self.store.load(name, getattr(self.keys, name))
+        return (True, saved) if hit and all(Path(self.out / f).exists() for f in saved[1]) \
+            else (False, None)
+
     def stage(self, name: str, compute, write=None):
         """The stage's result: reused when its key and files match, else computed and
         written (``write(value) -> files``) then saved."""
         t = time.perf_counter()
         key = getattr(self.keys, name) if self.keys is not None else None
-        if self.store is not None:
-            hit, saved = self.store.load(name, key)
-            if hit and all(Path(self.out / f).exists() for f in saved[1]):
-                self.reused.append(name)
-                self.timings[f"{name}_s"] = time.perf_counter() - t
-                return saved[0]
+        hit, saved = self._saved(name)
+        if hit:
+            self.reused.append(name)
+            self.timings[f"{name}_s"] = time.perf_counter() - t
+            return saved[0]
         value = compute()
         files = write(value) if (write is not None and self.out is not None) else []
         if self.store is not None:
@@ -704,6 +715,42 @@ class _Composer:
 
         recon = self.reconstruction(calibration)
         stages.append("reconstruct" if session.dimension == "2d" else "load_labeled")
+        # the recording's larger part (rig, calibration, takes) is written beside the stages
+        # that follow; its analyses' part and the commit come last
+        recording = settings.recording and out is not None and self.writers.recording is not None
+        recorder = None
+        if recording and not self._saved("recording")[0]:
+            recorder = self.writers.recording(
+                out / "session.rrd", RunResult(session, settings, calibration, recon, None, None,
+                                               None, {}, out, ()))
+        try:
+            result = self._after_reconstruction(calibration, recon, stages)
+        except BaseException:
+            if recorder is not None:
+                recorder.abort()
+            raise
+        if recording:  # reused when it was not started
+            self.stage("recording", lambda: None, lambda _: [recorder.finish(result)])
+            stages.append("recording")
+            say(f"Rerun recording: {out / 'session.rrd'} "
+                f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
+        if self.reused:
+            say(f"reused from the earlier run in {out}: {', '.join(self.reused)}")
+            say(f"computed: {', '.join(self.computed) or 'nothing'}")
+        self.timings["total_s"] = time.perf_counter() - t0
+        summary = self.summary(stages, recon, result.trials, result.analysis, calibration,
+                               result.audit)
+        if out is not None:
+            write_text(out / "summary.json", json.dumps(summary, indent=2))
+            if self.store is not None:
+                self.store.fingerprints.save()
+        return replace(result, summary=summary, reused=tuple(self.reused),
+                       computed=tuple(self.computed))
+
+    def _after_reconstruction(self, calibration, recon: Reconstruction,
+                              stages: list[str]) -> RunResult:
+        """The trials, analyses and audit of a reconstruction (a RunResult without summary)."""
+        session, settings, out, say = self.session, self.settings, self.out, self.say
 
         def write_trials(tr: Trials):
             return [write_parquet(tr.responses, out / "responses.parquet"),
@@ -731,26 +778,8 @@ class _Composer:
                                         self.writers.audit_figures))
         stages.append("audit")
 
-        result = RunResult(session, settings, calibration, recon, trials, analysis, audit, {},
-                           out, ())
-        write_recording = self.writers.recording
-        if settings.recording and out is not None and write_recording is not None:
-            self.stage("recording", lambda: None,
-                       lambda _: [write_recording(out / "session.rrd", result)])
-            stages.append("recording")
-            say(f"Rerun recording: {out / 'session.rrd'} "
-                f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
-        if self.reused:
-            say(f"reused from the earlier run in {out}: {', '.join(self.reused)}")
-            say(f"computed: {', '.join(self.computed) or 'nothing'}")
-        self.timings["total_s"] = time.perf_counter() - t0
-        summary = self.summary(stages, recon, trials, analysis, calibration, audit)
-        if out is not None:
-            write_text(out / "summary.json", json.dumps(summary, indent=2))
-            if self.store is not None:
-                self.store.fingerprints.save()
-        return replace(result, summary=summary, reused=tuple(self.reused),
-                       computed=tuple(self.computed))
+        return RunResult(session, settings, calibration, recon, trials, analysis, audit, {},
+                         out, ())
 
     def changed_settings(self) -> str:
         """The settings that differ from the last run's summary.json, as text ('' if none)."""

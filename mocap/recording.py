@@ -85,30 +85,104 @@ def blueprint(camera_ids):
 
 def write_recording(path: str | os.PathLike, result) -> Path:
     """Write the run's Rerun recording to ``path`` (atomically); return the path."""
-    import rerun as rr
+    return RecordingWriter(path, result, background=False).finish(result)
 
-    session = result.session
-    fps = float(session.fps)
-    recon = result.reconstruction
-    names = list(recon.markers.names)
-    calib = result.calibration
-    cam_ids = list(calib.rig.ids) if calib is not None else []
-    with atomic_path(path) as tmp:
-        rec = rr.RecordingStream("facemocap", recording_id=f"facemocap-{session.name}")
-        rec.save(str(tmp), default_blueprint=blueprint(cam_ids))
-        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
-        rec.log("world", rr.AnnotationContext([(i, n) for i, n in enumerate(names)]), static=True)
-        _log_rig_and_calibration(rec, rr, result, fps)
-        rest = recon.markers.rest_mm
-        ok = np.all(np.isfinite(rest), axis=1)
-        rec.log("world/rest", rr.Points3D(rest[ok], class_ids=np.flatnonzero(ok), radii=0.6),
-                static=True)
-        _log_takes(rec, rr, result, fps, names)
-        _log_responses(rec, rr, result, fps)
-        _log_annotations(rec, rr, result, names)
-        rec.flush()
-        rec.disconnect()
-    return Path(path)
+
+class RecordingWriter:
+    """A run's recording written in two parts, so that the larger part overlaps the run.
+
+    ``RecordingWriter(path, result)`` opens the recording under a temporary name and logs what
+    the reconstruction alone gives (the rig, the calibration, the rest positions and every
+    take's markers, paths and commands: ~90 % of a paper run's recording) on a background
+    thread; ``result`` needs ``session``, ``calibration`` and ``reconstruction`` only.
+    :meth:`finish` adds the parts the trials, analyses and audit give, then renames the file
+    onto ``path``; :meth:`abort` removes it. A failure on the thread is raised by
+    :meth:`finish`. Rerun encodes and writes off Python's lock, so on a paper run the thread
+    costs the trials and analyses little of their time (`benchmarks/profile.md`).
+    """
+
+    def __init__(self, path: str | os.PathLike, result, *, background: bool = True):
+        import threading
+
+        self.path = Path(path)
+        self._paths = atomic_path(self.path)
+        self._tmp = self._paths.__enter__()
+        self._error: BaseException | None = None
+        self._rec = None
+        if background:
+            self._thread = threading.Thread(target=self._first_part, args=(result,),
+                                            name="facemocap-recording", daemon=True)
+            self._thread.start()
+        else:
+            self._thread = None
+            self._first_part(result)
+
+    def _first_part(self, result) -> None:
+        try:
+            import rerun as rr
+
+            session = result.session
+            fps = float(session.fps)
+            recon = result.reconstruction
+            names = list(recon.markers.names)
+            calib = result.calibration
+            cam_ids = list(calib.rig.ids) if calib is not None else []
+            rec = rr.RecordingStream("facemocap", recording_id=f"facemocap-{session.name}")
+            self._rec = rec
+            rec.save(str(self._tmp), default_blueprint=blueprint(cam_ids))
+            rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+            rec.log("world", rr.AnnotationContext([(i, n) for i, n in enumerate(names)]),
+                    static=True)
+            _log_rig_and_calibration(rec, rr, result, fps)
+            rest = recon.markers.rest_mm
+            ok = np.all(np.isfinite(rest), axis=1)
+            rec.log("world/rest", rr.Points3D(rest[ok], class_ids=np.flatnonzero(ok), radii=0.6),
+                    static=True)
+            _log_takes(rec, rr, result, fps, names)
+        except BaseException as exc:  # noqa: BLE001  (raised again by finish)
+            self._error = exc
+
+    def _join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def finish(self, result) -> Path:
+        """Add the trials', analyses' and audit's parts of ``result`` (a complete
+        :class:`mocap.pipeline.RunResult`), close the recording and commit it; return its path."""
+        import rerun as rr
+
+        self._join()
+        try:
+            if self._error is not None:
+                raise self._error
+            rec = self._rec
+            fps = float(result.session.fps)
+            _log_responses(rec, rr, result, fps)
+            _log_annotations(rec, rr, result, list(result.reconstruction.markers.names))
+            rec.flush()
+            rec.disconnect()
+            self._rec = None
+        except BaseException as exc:
+            self._close()
+            self._paths.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        self._paths.__exit__(None, None, None)
+        return self.path
+
+    def abort(self) -> None:
+        """Stop (after the thread's part) and remove the temporary file; nothing is written."""
+        self._join()
+        self._close()
+        err = RuntimeError("recording aborted")
+        self._paths.__exit__(RuntimeError, err, None)
+
+    def _close(self) -> None:
+        if self._rec is not None:
+            try:
+                self._rec.disconnect()
+            finally:
+                self._rec = None
 
 
 def _log_rig_and_calibration(rec, rr, result, fps):

@@ -86,11 +86,12 @@ def audit_figures(out: Path, audit: dict, recon: Reconstruction, calibration) ->
     return F.audit_figures(out, audit, recon, calibration)
 
 
-def write_recording(path: Path, result) -> Path:
-    """The run's Rerun recording (``mocap.recording.write_recording``) of a ``RunResult``."""
-    from mocap.recording import write_recording as write
+def write_recording(path: Path, result):
+    """The run's Rerun recording of a ``RunResult``, started on what the reconstruction gives
+    (``mocap.recording.RecordingWriter``: ``finish(result)`` commits it, ``abort()`` drops it)."""
+    from mocap.recording import RecordingWriter
 
-    return write(path, result)
+    return RecordingWriter(path, result)
 
 
 WRITERS = RunWriters(analysis_figures=analysis_figures, audit_figures=audit_figures,

@@ -91,3 +91,78 @@ def test_sample_data_recording_loads_back(sample_run):
                 "/annotations/rejections", "/annotations/audit"]
     for p in prefixes:
         assert rows[p] > 0, p
+
+
+def _chunk_contents(path) -> dict:
+    """(entity, column) -> the sorted contents of its chunks, row ids and the recording's start
+    time left out: what a viewer shows, whatever order the chunks were written in."""
+    from rerun.chunk import RrdReader
+
+    out: dict = {}
+    for ch in RrdReader(path).stream():
+        rb = ch.to_record_batch()
+        for name in rb.schema.names:
+            if "rowid" in name.lower().replace("_", "") or name.endswith("start_time"):
+                continue
+            out.setdefault((ch.entity_path, name), []).append(repr(rb.column(name).to_pylist()))
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def test_recording_written_beside_the_run_equals_one_written_after_it(small_run, tmp_path):
+    """The run starts its recording when the takes are reconstructed and logs them on a thread
+    while the trials and analyses go on; the file equals one written from the finished result
+    in one go."""
+    from mocap.recording import write_recording
+
+    after = write_recording(tmp_path / "after.rrd", small_run)
+    beside = _chunk_contents(small_run.out_dir / "session.rrd")
+    assert beside == _chunk_contents(after)
+    assert any(entity.startswith("/world/takes/") for entity, _ in beside)
+
+
+def _no_recording_left(out) -> None:
+    assert not (out / "session.rrd").exists()
+    assert not list(out.glob(".session.rrd*")), "a temporary recording was left behind"
+
+
+def test_run_failing_after_the_reconstruction_leaves_no_recording(tiny_sim, tmp_path,
+                                                                   monkeypatch):
+    import mocap.pipeline as pipeline
+    from mocap.run_outputs import WRITERS
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("analysis failed on purpose")
+
+    monkeypatch.setattr(pipeline, "analyze_session", fail)
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="on purpose"):
+        pipeline.run_session(tiny_sim / "session", out,
+                             settings=pipeline.RunSettings(jobs=1), writers=WRITERS)
+    _no_recording_left(out)
+    assert len(list((out / "trajectories").glob("*.parquet"))) > 0  # the takes are kept
+
+
+def test_failure_while_recording_the_takes_is_raised_and_a_rerun_only_records(
+        tiny_sim, tmp_path, monkeypatch, capsys):
+    import mocap.recording as recording
+    from mocap.cli import main
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device (on purpose)")
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(recording, "_log_takes", full_disk)
+        assert main(["run", str(tiny_sim / "session"), "--out", str(out), "--jobs", "1",
+                     "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "error: [Errno 28] No space left on device (on purpose)" in err
+    assert "Traceback" not in err
+    _no_recording_left(out)
+    for table in ("properties.csv", "audit.json", "responses.parquet"):
+        assert (out / table).is_file(), table  # the stages before the recording are kept
+    assert main(["run", str(tiny_sim / "session"), "--out", str(out), "--jobs", "1"]) == 0
+    stdout = capsys.readouterr().out
+    assert "computed: recording" in stdout, stdout
+    assert (out / "session.rrd").is_file()
+    assert not list(out.glob(".session.rrd*"))

@@ -311,3 +311,27 @@ def test_files_hashed_ahead_on_threads_match_one_by_one(tmp_path):
     assert fp(files[2]) == plain(files[2])
     with pytest.raises(FileNotFoundError):
         fp(tmp_path / "missing.bin")
+
+
+def test_takes_read_back_are_loaded_once_when_threads_ask_together():
+    """A reused run's takes are read back on first access; the recording's thread and the
+    trials may ask for the same take at once, and each take is still read once."""
+    from collections import Counter
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mocap.reconstruct.takes import LazyTakes
+
+    calls: Counter = Counter()
+
+    def loader(name):
+        def load():
+            calls[name] += 1
+            time.sleep(0.02)  # a parquet read: long enough for the other threads to ask
+            return object()
+        return load
+
+    takes = LazyTakes({n: loader(n) for n in "abc"})
+    with ThreadPoolExecutor(6) as pool:
+        got = list(pool.map(lambda n: (n, takes[n]), list("abc") * 6))
+    assert calls == Counter({"a": 1, "b": 1, "c": 1})
+    assert all(value is takes[n] for n, value in got)

@@ -88,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
     except (SessionError, CalibrationError, OutputInUse, OutputPathError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
+    except OSError as e:  # writing the outputs (a full disk, a folder made read-only)
+        print(f"error: {e}\nwhat was finished is kept in {args.out}: the same command "
+              "resumes from it", file=sys.stderr)
+        return 1
     s = result.summary
     print(f"{s['session']['name']}: {sum(s['counts']['takes'].values())} takes, "
           f"{s['counts']['rows']} face-take rows; stages: {', '.join(s['stages'])}; "

@@ -95,16 +95,22 @@ class TakeReconstruction:
 
 class LazyTakes(Mapping):
     """Take name -> LabeledTake, each made by its loader on first access and then kept (a
-    reused run reads a take's trajectories back only when something asks for them)."""
+    reused run reads a take's trajectories back only when something asks for them). Safe to
+    read from several threads (a run's recording is written beside its trials): each take is
+    loaded once."""
 
     def __init__(self, loaders: Mapping[str, Callable[[], LabeledTake]]):
+        import threading
+
         self._loaders = dict(loaders)
         self._loaded: dict[str, LabeledTake] = {}
+        self._lock = threading.Lock()
 
     def __getitem__(self, name: str) -> LabeledTake:
-        if name not in self._loaded:
-            self._loaded[name] = self._loaders[name]()
-        return self._loaded[name]
+        with self._lock:
+            if name not in self._loaded:
+                self._loaded[name] = self._loaders[name]()
+            return self._loaded[name]
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._loaders)
