@@ -189,6 +189,7 @@ def test_killed_run_resumes_to_the_uninterrupted_results(tiny_sim, tiny_run, tmp
     assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
     os.kill(proc.pid, signal.SIGKILL)  # in the middle of the reconstruction
     proc.wait()
+    proc.stderr.close()
     done = sorted(p.name for p in (out / "trajectories").glob("*.parquet"))
     finished = len(done)
     assert 2 <= finished < len(faces)
