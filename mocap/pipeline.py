@@ -729,8 +729,9 @@ class _Composer:
             if recorder is not None:
                 recorder.abort()
             raise
-        if recording:  # reused when it was not started
-            self.stage("recording", lambda: None, lambda _: [recorder.finish(result)])
+        if recording:  # reused when it was not started (else started now, should it be gone)
+            self.stage("recording", lambda: None, lambda _: [
+                (recorder or self.writers.recording(out / "session.rrd", result)).finish(result)])
             stages.append("recording")
             say(f"Rerun recording: {out / 'session.rrd'} "
                 f"({(out / 'session.rrd').stat().st_size / 1e6:.1f} MB)")
