@@ -236,6 +236,11 @@ class Session:
     dimension: str
     warnings: tuple[str, ...] = ()
     _n_frames: dict[str, int] = field(default_factory=dict, init=False, repr=False)
+    _commands: dict[str, pd.DataFrame] = field(default_factory=dict, init=False, repr=False)
+
+    def __getstate__(self) -> dict:
+        # pickled to every worker with every take: the commands read so far stay here
+        return {**self.__dict__, "_commands": {}}
 
     @property
     def camera_ids(self) -> tuple[str, ...]:
@@ -297,14 +302,20 @@ class Session:
         ------
         SessionError
             When the take has no commands file, or on any contract violation in it.
+
+        A file is read and checked once per Session (a run validates every commands file, then
+        its trials and its recording read them again); each call returns a fresh copy.
         """
-        take = self.take(name)
-        if take.commands is None:
-            raise SessionError(
-                f"{MANIFEST}: take {name!r} has no 'commands' file (kind {take.kind!r})"
-            )
-        src = _Source(take.commands, self._label(take.commands))
-        return _read_commands(src, self.du_ids)
+        cached = self._commands.get(name)
+        if cached is None:
+            take = self.take(name)
+            if take.commands is None:
+                raise SessionError(
+                    f"{MANIFEST}: take {name!r} has no 'commands' file (kind {take.kind!r})"
+                )
+            src = _Source(take.commands, self._label(take.commands))
+            cached = self._commands[name] = _read_commands(src, self.du_ids)
+        return cached.copy()
 
     def n_frames(self, name: str) -> int:
         """Number of frames of a take: its largest ``frame`` + 1 (reads the take once)."""

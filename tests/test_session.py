@@ -151,6 +151,24 @@ def test_unknown_take_name(spec2d, tmp_path):
         load(spec2d, tmp_path).take("nope")
 
 
+def test_commands_read_once_per_session_each_call_a_copy(spec2d, tmp_path, monkeypatch):
+    import pickle
+
+    import mocap.session as ms
+
+    session = load(spec2d, tmp_path)
+    reads = []
+    real = ms._read_commands
+    monkeypatch.setattr(ms, "_read_commands", lambda src, dus: reads.append(src) or real(src, dus))
+    first = session.read_commands("du04_t01")
+    first.loc[:, "command"] = -1  # a caller's changes stay with its copy
+    second = session.read_commands("du04_t01")
+    assert len(reads) == 1 and second["command"].between(0, 255).all()
+    pd.testing.assert_frame_equal(second, real(reads[0], session.du_ids))
+    # a session pickled to a worker (once per take) leaves the commands read so far behind
+    assert pickle.loads(pickle.dumps(session))._commands == {}
+
+
 def test_read_commands_of_take_without_commands(spec2d, tmp_path):
     with pytest.raises(SessionError, match=r"take 'rest' has no 'commands' file"):
         load(spec2d, tmp_path).read_commands("rest")
