@@ -45,6 +45,8 @@ def assert_same(a, b, tol):
     assert np.nanmax(np.abs(a - b), initial=0.0) <= tol
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # the NumPy
+# reference on the broken (infinite) coordinates of observations(); the kernels do not warn
 @pytest.mark.parametrize("n", [0, 1, BLOCK - 1, BLOCK + 1, 3 * BLOCK + 17])
 @pytest.mark.parametrize("min_cameras", [2, 3])
 def test_fused_triangulation_equals_numpy_reference(n, min_cameras):
@@ -144,6 +146,8 @@ def test_importing_the_kernels_lets_idle_threads_sleep_unless_the_user_chose():
     assert out == "ACTIVE"
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # the NumPy
+# reference on the broken (infinite) coordinates of observations(); the kernels do not warn
 @pytest.mark.parametrize("parallel_from", [0, 10**9])
 def test_parallel_and_serial_kernels_give_the_same_bits(monkeypatch, parallel_from):
     """Large calls run the blocks in parallel, small ones on the calling thread: both run the same
