@@ -22,7 +22,7 @@ from mocap.pipeline import RunWriters, Trials, progress_bar
 from mocap.reconstruct.takes import Reconstruction
 from mocap.session import Session
 
-__all__ = ["analysis_figures", "audit_figures", "write_recording", "WRITERS"]
+__all__ = ["analysis_figures", "audit_figures", "start_recording", "write_recording", "WRITERS"]
 
 
 # Below this many figures they are drawn in this process whatever ``jobs`` says: a spawned
@@ -86,13 +86,22 @@ def audit_figures(out: Path, audit: dict, recon: Reconstruction, calibration) ->
     return F.audit_figures(out, audit, recon, calibration)
 
 
-def write_recording(path: Path, result):
-    """The run's Rerun recording of a ``RunResult``, started on what the reconstruction gives
-    (``mocap.recording.RecordingWriter``: ``finish(result)`` commits it, ``abort()`` drops it)."""
+def start_recording(path: Path, result):
+    """The run's Rerun recording, started on what the reconstruction gives (a ``RunResult``
+    without trials, analysis or audit): a ``mocap.recording.RecordingWriter`` logging the takes
+    on a thread; its ``finish(result)`` commits the file, ``abort()`` drops it."""
     from mocap.recording import RecordingWriter
 
     return RecordingWriter(path, result)
 
 
+def write_recording(path: Path, result) -> Path:
+    """The Rerun recording of a finished ``RunResult`` written in one go
+    (``mocap.recording.write_recording``)."""
+    from mocap.recording import write_recording as write
+
+    return write(path, result)
+
+
 WRITERS = RunWriters(analysis_figures=analysis_figures, audit_figures=audit_figures,
-                     recording=write_recording)
+                     recording=start_recording)
