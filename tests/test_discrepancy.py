@@ -296,7 +296,10 @@ def test_workflow_finds_two_hidden_effects_one_after_the_other(tmp_path_factory)
     assert got["beta_per_trial"] == pytest.approx(4.0, rel=0.2)
     assert doc["final_heldout_rms_mm"] <= 1.5 * doc["noise_floor_mm"]
     rms = [s["heldout_rms_mm"] for s in doc["localisation"]]
-    assert rms[0] > rms[1] > rms[2]
+    # the lag closes the gap; the drift is read last, as the trend of the takes' bias shifts
+    # the model already holds, so its stage scores the same held-out residuals as the one before
+    assert rms[0] > rms[1] and rms[2] == rms[1]
+    assert doc["localisation"][2]["model"].endswith("+drift")
 
 
 @pytest.mark.slow  # the whole workflow on a session: minutes under load
