@@ -113,12 +113,18 @@ class Fingerprints:
         if path is None:
             return None
         path = Path(path).resolve()
+        stamp, known = self._lookup(path)
+        return known if known is not None else self._remember(path, stamp, file_hash(path))
+
+    def _lookup(self, path: Path) -> tuple[list, str | None]:
+        """(the file's [size, mtime_ns], its remembered hash or None when unknown or stale);
+        OSError when it cannot be stat'ed."""
         st = path.stat()
         stamp = [st.st_size, st.st_mtime_ns]
         entry = self.memo.get(str(path))
-        if entry is not None and entry[:2] == stamp:
-            return entry[2]
-        digest = file_hash(path)
+        return stamp, (entry[2] if entry is not None and entry[:2] == stamp else None)
+
+    def _remember(self, path: Path, stamp: list, digest: str) -> str:
         self.memo[str(path)] = stamp + [digest]
         self._dirty = True
         return digest
@@ -131,12 +137,10 @@ class Fingerprints:
         todo = []
         for path in {Path(p).resolve() for p in paths if p is not None}:
             try:
-                st = path.stat()
+                stamp, known = self._lookup(path)
             except OSError:
                 continue
-            stamp = [st.st_size, st.st_mtime_ns]
-            entry = self.memo.get(str(path))
-            if entry is None or entry[:2] != stamp:
+            if known is None:
                 todo.append((path, stamp))
         if not todo:
             return
@@ -156,8 +160,7 @@ class Fingerprints:
             digests = [digest(item) for item in todo]
         for (path, stamp), value in zip(todo, digests):
             if value is not None:
-                self.memo[str(path)] = stamp + [value]
-                self._dirty = True
+                self._remember(path, stamp, value)
 
     def save(self) -> None:
         if self._dirty and self.memo_path is not None:
