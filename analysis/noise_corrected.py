@@ -104,6 +104,8 @@ from mocap.analysis.paper_indices import TIME_TOL_S, ScheduleTiming
 NORMALISE_S = 0.25  # smoothing of the chord for finding its plateau (3 s hold in the paper)
 MIN_NOISE_DOF = 30  # per marker, below this the still frames do not measure the noise
 PATH_DEGREE = 3  # the perpendicular part of a path as a polynomial of this degree in p
+PATH_SMOOTH_S = 0.1  # the path fit's regressor: p averaged over this centred box in time
+REST_GAIN_NODES = 32  # Gauss-Hermite nodes of the rest error's expected gain over p's noise
 SOFT_ROOT = 3.0  # the spread's root is linear below this many sd of its variance's noise
 HOLD_BOX_S = 1.0  # the box of the deltas over the settled hold (flat there), cut at its ends
 FINE_LEVELS_S = (0.025, 0.0)  # finer boxes (and variance smoothing) where the spread allows; 0: a frame
@@ -287,7 +289,11 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     with warnings.catch_warnings():  # an unseen marker's scale is NaN (its chord stays NaN)
         warnings.simplefilter("ignore", RuntimeWarning)
         scale = np.nanmax(np.where(ok, np.abs(p), np.nan), axis=0)
-    q = p / np.where(scale > 0, scale, 1.0)[None]  # conditioning: q in [-1, 1]
+    sc = np.where(scale > 0, scale, 1.0)
+    # the regressor: p averaged over a short centred box in time (the path's parameter tied to
+    # time), its noise down by the box's length; w is fitted and evaluated on it
+    q_s, _ = box_mean(np.where(ok, p / sc[None], np.nan), path_smooth_frames(fps))
+    q = np.where(ok & np.isfinite(q_s), q_s, p / sc[None])  # conditioning: q in about [-1, 1]
     A = np.stack([q**k for k in range(PATH_DEGREE + 1)], axis=-1)  # (n, M, degree + 1)
     A = np.where(ok[..., None], A, 0.0)
     W = np.where(ok[..., None], w, 0.0)
@@ -296,16 +302,19 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     coef = np.linalg.solve(AtA, AtW)  # (M, powers, 3 axes)
     wp = sum(q[..., None] ** k * coef[None, :, k] for k in range(1, PATH_DEGREE + 1))  # w - w(0)
     dwp = sum(k * q[..., None] ** (k - 1) * coef[None, :, k] for k in range(1, PATH_DEGREE + 1))
-    dwp = dwp / np.where(scale > 0, scale, 1.0)[None, :, None]
-    g2 = p * p + np.sum(wp * wp, axis=-1)
+    dwp = dwp / sc[None, :, None]
+    W2 = np.sum(wp * wp, axis=-1)  # |w(q_s) - w(0)|^2, the path's perpendicular part squared
+    # the chord at the frame's own p (its noise along the path white and zero-mean, as before)
+    # with the path's perpendicular part at the smoothed one
+    g2 = p * p + W2
     chord = np.sign(p) * np.sqrt(g2)
-    dw0 = coef[:, 1] / np.where(scale > 0, scale, 1.0)[:, None]  # (M, 3) the path's w'(0)
+    dw0 = coef[:, 1] / sc[:, None]  # (M, 3) the path's w'(0)
     with np.errstate(invalid="ignore", divide="ignore"):
         slope = np.where(g2 > 0, np.sign(p) * (p + np.sum(wp * dwp, axis=-1)) / np.sqrt(g2), 1.0)
-        # a rest reference off by e along u measures the chord from the path's point at p = e:
-        # the chord changes by -e (chord direction . (u + w'(0)))
-        rest_gain = np.where(g2 > 0, np.sign(p) * (p + np.sum(wp * dw0[None], axis=-1)) / np.sqrt(g2),
-                             np.sqrt(1.0 + np.sum(dw0 * dw0, axis=-1))[None])
+    along_var = np.einsum("mi,mij,mj->m", u, noise_cov, u)
+    sigma = np.sqrt(along_var[None] / np.maximum(np.asarray(n_trials, float), 1.0))
+    rest_gain = _rest_gain(q * sc[None], sigma, W2, np.sum(wp * dw0[None], axis=-1),
+                           np.sqrt(1.0 + np.sum(dw0 * dw0, axis=-1)))
     # the maximum: the mean over the settled hold at the top command (no noise excursion, no
     # selection by the noise); where the smoothed chord clearly rises above it elsewhere (a path
     # bulging beyond its end point), the mean over the frames near that maximum instead
@@ -328,8 +337,40 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     peak = np.where(plateau.any(axis=0), level, top)
     with np.errstate(invalid="ignore", divide="ignore"):
         delta = chord / np.where(peak > 0, peak, np.nan)[None]
-    along_var = np.einsum("mi,mij,mj->m", u, noise_cov, u)
     return PathChord(chord, delta, peak, slope, rest_gain, along_var, rest, plateau, samples)
+
+
+def path_smooth_frames(fps: float) -> int:
+    """The odd number of frames of the path fit's regressor box (``PATH_SMOOTH_S``)."""
+    return 2 * int(round(0.5 * PATH_SMOOTH_S * fps)) + 1
+
+
+def _rest_gain(p_s: np.ndarray, sigma: np.ndarray, W2: np.ndarray, Wd: np.ndarray,
+               at_rest: np.ndarray) -> np.ndarray:
+    """(n_frames, M) how an error e of the rest reference along the path moves each frame's chord
+    (the chord changes by -gain e), in expectation over the frame's own noise along the path.
+
+    The chord is G(x) = sign(x) sqrt(x^2 + W^2) of the frame's own p = x (noise sd ``sigma``,
+    around the smoothed p ``p_s``) with the path's perpendicular part W (``W2`` = W^2) from the
+    smoothed p; a rest reference off by e measures from the path's point at p = e, so
+    dG/de = -sign(x) (x + Wd) / G with Wd = (w(p_s) - w(0)) . w'(0). The expectation over x
+    (Gauss-Hermite) and the sign's jump of 2 W at x = 0 (its expected slope 2 W pdf_x(0)):
+    far from rest the path's gain, chord direction . (u + w'(0)); at rest, where x is mostly
+    noise and W small, about 1. Without noise (sigma 0): the path's gain at p_s; where the chord
+    has no length: ``at_rest`` (M,) = |u + w'(0)|."""
+    z, wz = np.polynomial.hermite_e.hermegauss(REST_GAIN_NODES)
+    wz = wz / wz.sum()
+    gain = np.zeros(np.shape(p_s))
+    noisy = sigma > 0
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        for zk, wk in zip(z, wz):
+            x = p_s + zk * np.where(noisy, sigma, 0.0)
+            g = np.sqrt(x * x + W2)
+            gain += wk * np.where(g > 0, np.sign(x) * (x + Wd) / g, at_rest[None])
+        jump = np.where(noisy, 2.0 * np.sqrt(W2) * np.exp(-0.5 * (p_s / sigma) ** 2)
+                        / (sigma * np.sqrt(2.0 * np.pi)), 0.0)
+    gain = gain + np.where(np.isfinite(jump), jump, 0.0)
+    return np.where(np.isfinite(gain), gain, at_rest[None])
 
 
 def box_mean(x: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
