@@ -336,3 +336,33 @@ def test_takes_read_back_are_loaded_once_when_threads_ask_together():
         got = list(pool.map(lambda n: (n, takes[n]), list("abc") * 6))
     assert calls == Counter({"a": 1, "b": 1, "c": 1})
     assert all(value is takes[n] for n, value in got)
+
+
+def test_takes_read_back_in_two_threads_do_not_wait_on_each_other():
+    """Two threads reading different takes load them side by side: take a's loader finishes only
+    once take b's loader has started (one lock for all takes would hold b until a gave up)."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mocap.reconstruct.takes import LazyTakes
+
+    a_entered, b_started = threading.Event(), threading.Event()
+
+    def load_a():
+        a_entered.set()
+        if not b_started.wait(timeout=5.0):
+            raise TimeoutError("take b was not loaded while take a was loading")
+        return "A"
+
+    def load_b():
+        b_started.set()
+        return "B"
+
+    takes = LazyTakes({"a": load_a, "b": load_b})
+    with ThreadPoolExecutor(2) as pool:
+        fa = pool.submit(lambda: takes["a"])
+        assert a_entered.wait(timeout=5.0)  # a is loading (and holds whatever lock it takes)
+        fb = pool.submit(lambda: takes["b"])
+        assert (fa.result(timeout=10), fb.result(timeout=10)) == ("A", "B")
+    with pytest.raises(KeyError):
+        takes["missing"]

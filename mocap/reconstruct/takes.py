@@ -97,17 +97,21 @@ class LazyTakes(Mapping):
     """Take name -> LabeledTake, each made by its loader on first access and then kept (a
     reused run reads a take's trajectories back only when something asks for them). Safe to
     read from several threads (a run's recording is written beside its trials): each take is
-    loaded once."""
+    loaded once, under a lock of its own, so threads reading different takes do not wait on
+    each other."""
 
     def __init__(self, loaders: Mapping[str, Callable[[], LabeledTake]]):
         import threading
 
         self._loaders = dict(loaders)
         self._loaded: dict[str, LabeledTake] = {}
-        self._lock = threading.Lock()
+        self._locks = {name: threading.Lock() for name in self._loaders}
 
     def __getitem__(self, name: str) -> LabeledTake:
-        with self._lock:
+        take = self._loaded.get(name)
+        if take is not None:
+            return take
+        with self._locks[name]:  # KeyError for a name with no loader, as a mapping should
             if name not in self._loaded:
                 self._loaded[name] = self._loaders[name]()
             return self._loaded[name]
