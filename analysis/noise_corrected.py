@@ -292,8 +292,9 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     sc = np.where(scale > 0, scale, 1.0)
     # the regressor: p averaged over a short centred box in time (the path's parameter tied to
     # time), its noise down by the box's length; w is fitted and evaluated on it
-    q_s, _ = box_mean(np.where(ok, p / sc[None], np.nan), path_smooth_frames(fps))
-    q = np.where(ok & np.isfinite(q_s), q_s, p / sc[None])  # conditioning: q in about [-1, 1]
+    q = p / sc[None]  # conditioning: q in about [-1, 1]
+    q_s, _ = box_mean(np.where(ok, q, np.nan), path_smooth_frames(fps))
+    q = np.where(ok & np.isfinite(q_s), q_s, q)
     A = np.stack([q**k for k in range(PATH_DEGREE + 1)], axis=-1)  # (n, M, degree + 1)
     A = np.where(ok[..., None], A, 0.0)
     W = np.where(ok[..., None], w, 0.0)

@@ -36,7 +36,7 @@ def stats(rel: np.ndarray, prefix: str) -> dict:
 
 
 def case(family: str, K: int, sigma: float, seeds: int, markers: int, prior_takes: int) -> dict:
-    from synthetic_faces import FPS, add_noise, make_take
+    from synthetic_faces import FPS, add_noise, make_take, rest_seen_elsewhere
     from test_paper_indices import plain_spread_and_linearity
 
     from mocap.analysis.noise_corrected import (
@@ -58,10 +58,8 @@ def case(family: str, K: int, sigma: float, seeds: int, markers: int, prior_take
                 noise.cov)
         g, _ = corrected_dyssynchrony(*args)
         # the other takes' rest frames: the same rest, the same noise (K trials x 6 frames each)
-        n_prior = prior_takes * K * 6
-        rest = take.trials[:, 0].mean(axis=0) + np.einsum(
-            "mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(markers, 3))) / np.sqrt(n_prior)
-        g_pooled, _ = corrected_dyssynchrony(*args, rest_prior=(rest, np.full(markers, float(n_prior))))
+        g_pooled, _ = corrected_dyssynchrony(
+            *args, rest_prior=rest_seen_elsewhere(rng, take.trials, cov, prior_takes * K * 6))
         lc = corrected_linearity(noisy, tm, FPS, noise.cov)
         g_raw, l_raw = plain_spread_and_linearity(noisy, take.time_s, take.command, FPS)
         rel.append(g / gamma - 1)

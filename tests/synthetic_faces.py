@@ -137,3 +137,13 @@ def add_noise(rng, trials, sigma_mm: float):
     A = A / np.sqrt(np.einsum("mij,mij->m", A, A) / 3)[:, None, None] * sigma_mm
     e = rng.normal(0, 1, trials.shape)
     return trials + np.einsum("mij,ktmj->ktmi", A, e), np.einsum("mik,mjk->mij", A, A)
+
+
+def rest_seen_elsewhere(rng, trials, cov, n_prior: int):
+    """(position (M, 3) mm, samples (M,)): the face's rest as ``n_prior`` single-trial frames of
+    other takes saw it (``rest_prior`` of the corrected dyssynchrony): the noise-free rest of
+    ``trials`` (K, n_frames, M, 3), averaged over trials, plus the mean of that many frames' noise
+    of covariance ``cov`` (M, 3, 3), the same anisotropic shape as the take's."""
+    M = trials.shape[2]
+    noise = np.einsum("mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(M, 3)))
+    return trials[:, 0].mean(axis=0) + noise / np.sqrt(n_prior), np.full(M, float(n_prior))

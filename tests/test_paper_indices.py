@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 from scipy.optimize import curve_fit
 
-from synthetic_faces import FPS, add_noise, make_take
+from synthetic_faces import FPS, add_noise, make_take, rest_seen_elsewhere
 
 # ---- the paper's computation, a second time, plainly ---------------------------------------
 
@@ -186,11 +186,11 @@ def _noise_free_take(cache, family, K, markers, seed):
     return take, gamma, linearity, copy.deepcopy(rng)
 
 
-def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0, cache=None):
-    """(relative dyssynchrony errors, linearity errors, the literal formula's relative error on
-    the noisy data) over seeds. ``prior_takes`` > 0: the rest reference pooled with the face's
-    rest seen in that many other takes (K trials x 6 rest frames each, the same noise), as the
-    session analysis pools the other DUs' takes. ``cache``: the module's ``noise_free``."""
+def corrected_errors(noisy, command_series, time_s, command, fps, gamma, linearity, prior=None):
+    """(the corrected dyssynchrony's relative error, the corrected linearity's error, the literal
+    dyssynchrony's relative error) of noisy trials (K, n_frames, M, 3) mm against the recipe's
+    noise-free values ``gamma`` and ``linearity``; the capture noise measured on the take's still
+    frames (``command_series``, one command per frame); ``prior``: ``rest_prior``."""
     from mocap.analysis.noise_corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
@@ -198,27 +198,30 @@ def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0, cache
     )
     from mocap.analysis.paper_indices import schedule_timing
 
-    rel, lin, raw = [], [], []
+    K, M = noisy.shape[0], noisy.shape[2]
+    tm = schedule_timing(time_s, command)
+    noise = capture_noise_covariance(noisy, command_series, fps)
+    g, _ = corrected_dyssynchrony(noisy.mean(axis=0), np.full(noisy.shape[1:3], K),
+                                  np.ones(M, bool), tm, fps, noise.cov, rest_prior=prior)
+    lc = corrected_linearity(noisy, tm, fps, noise.cov)
+    return (g / gamma - 1, float(np.mean(lc)) - linearity,
+            plain_spread_and_linearity(noisy, time_s, command, fps)[0] / gamma - 1)
+
+
+def corrected_vs_truth(family, K, sigma, seeds, markers=30, prior_takes=0, cache=None):
+    """(relative dyssynchrony errors, linearity errors, the literal formula's relative error on
+    the noisy data) over seeds. ``prior_takes`` > 0: the rest reference pooled with the face's
+    rest seen in that many other takes (K trials x 6 rest frames each, the same noise), as the
+    session analysis pools the other DUs' takes. ``cache``: the module's ``noise_free``."""
+    out = []
     for seed in seeds:
         take, gamma, linearity, rng = _noise_free_take({} if cache is None else cache, family, K,
                                                        markers, seed)
-        tm = schedule_timing(take.time_s, take.command)
         noisy, cov = add_noise(rng, take.trials, sigma)
-        noise = capture_noise_covariance(noisy, take.series, FPS)
-        n_tr = np.full(noisy.shape[1:3], K)
-        prior = None
-        if prior_takes:
-            n_prior = prior_takes * K * 6
-            rest = take.trials[:, 0].mean(axis=0) + np.einsum(
-                "mij,mj->mi", np.linalg.cholesky(cov), rng.normal(size=(markers, 3))) / np.sqrt(n_prior)
-            prior = (rest, np.full(markers, float(n_prior)))
-        g, _ = corrected_dyssynchrony(noisy.mean(axis=0), n_tr, np.ones(markers, bool), tm, FPS,
-                                      noise.cov, rest_prior=prior)
-        lc = corrected_linearity(noisy, tm, FPS, noise.cov)
-        rel.append(g / gamma - 1)
-        lin.append(np.mean(lc) - linearity)
-        raw.append(plain_spread_and_linearity(noisy, take.time_s, take.command, FPS)[0] / gamma - 1)
-    return np.array(rel), np.array(lin), np.array(raw)
+        prior = rest_seen_elsewhere(rng, take.trials, cov, prior_takes * K * 6) if prior_takes else None
+        out.append(corrected_errors(noisy, take.series, take.time_s, take.command, FPS, gamma,
+                                    linearity, prior))
+    return tuple(np.array(x) for x in zip(*out))
 
 
 @pytest.mark.parametrize("family", ["bow", "offchord"])
@@ -385,12 +388,6 @@ def simulator_family_errors(family, K, sigma, noise_free, *, pooled):
     rest in 15 other takes of K trials x 6 frames (what the session analysis does), their mean
     carrying the same anisotropic noise. Returns the relative dyssynchrony errors, the linearity
     errors and the literal dyssynchrony's relative errors, one per face."""
-    from mocap.analysis.noise_corrected import (
-        capture_noise_covariance,
-        corrected_dyssynchrony,
-        corrected_linearity,
-    )
-    from mocap.analysis.paper_indices import schedule_timing
     from mocap.schedules import sample_commands, trapezoid
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
@@ -398,7 +395,7 @@ def simulator_family_errors(family, K, sigma, noise_free, *, pooled):
 
     du, sched = 4, trapezoid(4)
     ts, c = sched["time_s"].to_numpy(), sched["command"].to_numpy()
-    rel, lin, raw = [], [], []
+    out = []
     for seed in range(16):
         cfg = preset("small", seed=seed, battery=False, n_trials=K, face_family=family)
         n = int(round((ts.max() + RESPONSE_TAIL_S) * cfg.fps))
@@ -416,23 +413,10 @@ def simulator_family_errors(family, K, sigma, noise_free, *, pooled):
         T, gamma, linearity = noise_free[key]
         rng = np.random.default_rng(seed)
         noisy, cov = add_noise(rng, T, sigma)
-        tm = schedule_timing(ts, c)
-        noise = capture_noise_covariance(noisy, sample_commands(sched, [du], np.arange(n) / cfg.fps)[:, 0],
-                                         cfg.fps)
-        prior = None
-        if pooled:
-            n_prior = 15 * K * 6
-            M = T.shape[2]
-            prior = (T[:, 0].mean(axis=0) + np.einsum("mij,mj->mi", np.linalg.cholesky(cov),
-                                                      rng.normal(size=(M, 3))) / np.sqrt(n_prior),
-                     np.full(M, float(n_prior)))
-        g, _ = corrected_dyssynchrony(noisy.mean(axis=0), np.full(noisy.shape[1:3], K),
-                                      np.ones(T.shape[2], bool), tm, cfg.fps, noise.cov,
-                                      rest_prior=prior)
-        rel.append(g / gamma - 1)
-        lin.append(np.mean(corrected_linearity(noisy, tm, cfg.fps, noise.cov)) - linearity)
-        raw.append(plain_spread_and_linearity(noisy, ts, c, cfg.fps)[0] / gamma - 1)
-    return np.array(rel), np.array(lin), np.array(raw)
+        prior = rest_seen_elsewhere(rng, T, cov, 15 * K * 6) if pooled else None
+        out.append(corrected_errors(noisy, sample_commands(sched, [du], np.arange(n) / cfg.fps)[:, 0],
+                                    ts, c, cfg.fps, gamma, linearity, prior))
+    return tuple(np.array(x) for x in zip(*out))
 
 
 @pytest.mark.parametrize("family", ["preisach-bow", "boucwen-offchord"])
