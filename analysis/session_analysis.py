@@ -13,20 +13,20 @@ from typing import Mapping, NamedTuple
 import numpy as np
 import pandas as pd
 
-from mocap.analysis.design import PlanTiming
-from mocap.analysis.evaluation import MotionEvaluation, evaluate_motion, realized_delta
-from mocap.analysis.displacement import plateau_mask
-from mocap.analysis.linearity import spatial_linearity, step_noise_covariance
-from mocap.analysis.noise_corrected import (
+from mocap.analysis.design.inverse_response import PlanTiming
+from mocap.analysis.design.evaluation import MotionEvaluation, evaluate_motion, realized_delta
+from mocap.analysis.paper.displacement import plateau_mask
+from mocap.analysis.paper.linearity import spatial_linearity, step_noise_covariance
+from mocap.analysis.noise.corrected import (
     capture_noise_covariance,
     corrected_dyssynchrony,
     corrected_fits,
     corrected_linearity,
     rest_sums,
 )
-from mocap.analysis.paper_indices import paper_indices, timing_from_series
-from mocap.analysis.plans import PLAN_NAMES
-from mocap.analysis.properties import du_properties
+from mocap.analysis.paper.indices import paper_indices, timing_from_series
+from mocap.analysis.design.plans import PLAN_NAMES
+from mocap.analysis.paper.properties import du_properties
 
 MIN_STEP_DOF = 30  # in-take noise covariance needs this many degrees of freedom per marker
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
@@ -59,7 +59,7 @@ class SessionAnalysis:
     bool, markers not rejected; fitted : DU -> (M,) bool, markers in the response fits;
     fields_mm : DU -> (M, 3) mean displacement at full command (mm); motions : the motion takes
     evaluated against their plans (``evaluate_plan_take``), added by the composer; paper : DU ->
-    its PaperIndices (the paper's recipe, ``mocap.analysis.paper_indices``).
+    its PaperIndices (the paper's recipe, ``mocap.analysis.paper.indices``).
     """
 
     properties: pd.DataFrame
@@ -70,7 +70,7 @@ class SessionAnalysis:
     fitted: Mapping[int, np.ndarray]
     fields_mm: Mapping[int, np.ndarray]
     motions: tuple[MotionResult, ...] = ()
-    paper: Mapping | None = None  # du -> PaperIndices (the paper's recipe, mocap.analysis.paper_indices)
+    paper: Mapping | None = None  # du -> PaperIndices (the paper's recipe, mocap.analysis.paper.indices)
 
 
 def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
@@ -81,7 +81,7 @@ def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
     the mean squared frame-to-frame difference there is the variance of the curve's white noise
     (trial-mean measurement noise and skin jitter alike, in delta units, whatever the noise's
     direction). How it reaches each step mean (through the rest reference and the plateau too)
-    is ``mocap.analysis.properties.step_noise_factor``'s business. Flat holds rather than every step:
+    is ``mocap.analysis.paper.properties.step_noise_factor``'s business. Flat holds rather than every step:
     a response still moving inside a step would count as noise there.
     """
     c = np.asarray(command)
@@ -99,7 +99,7 @@ def take_noise_covariance(avg, noise_mm: np.ndarray | None = None,
                           noise_cov_mm2: np.ndarray | None = None) -> np.ndarray:
     """(M, 3, 3) mm^2 noise covariance of each marker's positions in a response take, for the
     noise-corrected linearity: measured within the take's command steps
-    (``mocap.analysis.linearity.step_noise_covariance``); where a marker has fewer than
+    (``mocap.analysis.paper.linearity.step_noise_covariance``); where a marker has fewer than
     ``MIN_STEP_DOF`` degrees of freedom there, the rest take's covariance (``noise_cov_mm2``) or
     isotropic ``noise_mm`` ** 2 when given."""
     cov, dof = step_noise_covariance(avg.trials, avg.command)
@@ -129,10 +129,10 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
     """Linearity, fitted responses and indices for every DU's averaged response.
 
     The paper's columns (``alpha_fwd`` ... ``linearity_mean``, ``dyssynchrony_raw``) are the
-    paper's recipe on the measured data (``mocap.analysis.paper_indices``) over the markers the
+    paper's recipe on the measured data (``mocap.analysis.paper.indices``) over the markers the
     rejections keep; ``dyssynchrony`` and ``linearity_corrected_mean`` estimate what that recipe
     gives on noise-free positions of the same trials, over the same markers
-    (``mocap.analysis.noise_corrected``; the capture noise measured on each take's still frames).
+    (``mocap.analysis.noise.corrected``; the capture noise measured on each take's still frames).
     Columns ending ``_corrected`` are the paper's fits on the same noise-corrected chords
     (``corrected_fits``). Columns ending ``_along_path``, ``dyssynchrony_step_means`` and
     ``linearity_step_noise_mean`` are the along-path estimator (docs/indices.md says when to
@@ -142,7 +142,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the
         along-path fits use only markers whose peak displacement is at least ``MIN_SNR`` times
         that noise, and its step-mean dyssynchrony is corrected for the remaining noise
-        (``mocap.analysis.properties``); it is also the capture noise's fallback for markers
+        (``mocap.analysis.paper.properties``); it is also the capture noise's fallback for markers
         with too few still frames.
     noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the fallback
         preferred over ``noise_mm``.
@@ -154,7 +154,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
     timings = [a.timing if a.timing is not None else timing_from_series(a.command, a.fps)
                for a in averages]
     # the face at rest before every response take: each DU's rest reference is pooled with the
-    # other DUs' rest frames where they agree (``mocap.analysis.noise_corrected.pooled_rest``)
+    # other DUs' rest frames where they agree (``mocap.analysis.noise.corrected.pooled_rest``)
     sums = [rest_sums(a.trials, tm, a.fps) for a, tm in zip(averages, timings)]
     total = (sum(x[0] for x in sums), sum(x[1] for x in sums)) if sums else None
 
@@ -182,7 +182,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         n_tr = np.maximum(np.max(avg.n_trials, axis=0), 1)  # trials that saw each marker
         if noise_mm is not None:
             noise_var = delta_noise_variance(delta, avg.command)
-            from mocap.reconstruct.trials import NORMALISE_S
+            from mocap.reconstruction.trials import NORMALISE_S
 
             plateau = plateau_mask(delta, max(1, int(round(NORMALISE_S * avg.fps))))[0]
         fit_keep = keep

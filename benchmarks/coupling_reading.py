@@ -30,11 +30,11 @@ CASES = ("boucwen-bow:model:3,boucwen-bow:alt2:8,boucwen-offchord:alt2:2,boucwen
 
 
 def read_case(family: str, form: str, seed: int, effect: str = "coupling") -> dict:
-    from mocap.analysis.discrepancy import DiscrepancySettings, fit_base, prepare
-    from mocap.analysis.face_model import make_effects
-    from mocap.analysis.model_effects import BASE
-    from mocap.analysis.model_fit import coupling_kappa, law_kappa, multi_du_takes
-    from mocap.discrepancy_input import load_measured
+    from mocap.analysis.discrepancy.workflow import DiscrepancySettings, fit_base, prepare
+    from mocap.analysis.model.face_model import make_effects
+    from mocap.analysis.model.effects import BASE
+    from mocap.analysis.model.fit import coupling_kappa, law_kappa, multi_du_takes
+    from mocap.workflows.discrepancy.inputs import load_measured
     from mocap.simulate.truth import effect_parameters, realised_coupling_kappa
 
     from cross_family_sweep import _simulate  # the sweep's session of a case

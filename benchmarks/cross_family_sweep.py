@@ -156,8 +156,8 @@ def _drift_errors(row: dict, realised: float) -> dict:
 
 def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None,
              form: str | None = None) -> dict:
-    from mocap.analysis.discrepancy import DiscrepancySettings
-    from mocap.discrepancy_io import run
+    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.workflows.discrepancy.results import run
 
     form = form or seed_form(seed)
     d = _simulate(family, effect, seed, root, form=form)

@@ -51,8 +51,8 @@ def rms(ev) -> float:
 
 def run_case(family: str, effect: str, form: str, seed: int, root: Path,
              refine_gain: dict[str, float], plans=PLANS) -> dict:
-    from mocap.analysis.design import PlanTiming, paper_design
-    from mocap.analysis.model_design import (
+    from mocap.analysis.design.inverse_response import PlanTiming, paper_design
+    from mocap.analysis.design.model_based import (
         command_times,
         design_commands,
         design_plan,
@@ -62,7 +62,7 @@ def run_case(family: str, effect: str, form: str, seed: int, root: Path,
         set_at_rest,
         tracking_floor,
     )
-    from mocap.design_io import identify_model, paper_responses, play_virtual_take, virtual_face_of
+    from mocap.workflows.design import identify_model, paper_responses, play_virtual_take, virtual_face_of
     from mocap.simulate import preset, simulate
     from mocap.simulate.effects import make_effect
 
@@ -195,7 +195,7 @@ def summarise(rows: list[dict], note: str = "") -> tuple[dict, str]:
           "(16 ms, 2 frames at 120 fps) every marker holds still; the best any command file can "
           "do is then the plan's mean over each step, and over the fall no lower than the set the "
           "face keeps at command 0 after the motion (read on the clean plays that end at 0) "
-          "(`mocap.analysis.model_design.tracking_floor`). The *floor* column is that RMS over "
+          "(`mocap.analysis.design.model_based.tracking_floor`). The *floor* column is that RMS over "
           "the paper's; where it is above 1/5, no command file reaches the refinement target.",
           ""]
     L += (["Plans whose floor is above 1/5: " + "; ".join(below) + "."] if below

@@ -25,8 +25,8 @@ CASES = ["none", "lag", "deadtime", "backlash", "coupling", "drift", "saturation
 
 
 def run_case(case: str, seed: int, root: Path, jobs: int) -> dict:
-    from mocap.analysis.discrepancy import DiscrepancySettings
-    from mocap.discrepancy_io import run
+    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.workflows.discrepancy.results import run
     from mocap.simulate import preset, simulate
     from mocap.simulate.effects import make_effect
 
@@ -35,7 +35,7 @@ def run_case(case: str, seed: int, root: Path, jobs: int) -> dict:
     d = root / f"{case}_{seed}"
     simulate(cfg, d)
     t0 = time.perf_counter()
-    from mocap.analysis.model_effects import CANDIDATES
+    from mocap.analysis.model.effects import CANDIDATES
 
     # the default base (hysteresis density, paths, take shifts); "static": from no hysteresis
     settings = (DiscrepancySettings(jobs=jobs, base=(), candidates=("hysteresis", "curvature") + CANDIDATES)

@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     wanted = [w for w in args.only.split(",") if w] or [""]
     chosen = lambda target: any(w in target for w in wanted)  # noqa: E731
-    from mocap.session import SessionWarning  # noqa: F401 - fail early if not installed
+    from mocap.core.session import SessionWarning  # noqa: F401 - fail early if not installed
 
     import session_builders as sb
 

@@ -39,12 +39,12 @@ def case(family: str, K: int, sigma: float, seeds: int, markers: int, prior_take
     from synthetic_faces import FPS, add_noise, make_take, rest_seen_elsewhere
     from test_paper_indices import plain_spread_and_linearity
 
-    from mocap.analysis.noise_corrected import (
+    from mocap.analysis.noise.corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
         corrected_linearity,
     )
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
 
     rel, pooled, lin, raw, lin_raw, gammas = [], [], [], [], [], []
     for seed in range(seeds):

@@ -2,7 +2,7 @@
 
 Runs ``mocap run`` on the cached paper session (``benchmarks/cache/paper``, made by ``run.py``'s
 simulate stage) unless its output exists, then computes the paper's recipe
-(``mocap.analysis.paper_indices``) on the simulator's noise-free positions of the same trials
+(``mocap.analysis.paper.indices``) on the simulator's noise-free positions of the same trials
 (each trial with its own trial-to-trial variation; without capture noise and without the skin's
 frame-to-frame jitter) over the markers the run kept, and writes ``benchmarks/paper_indices.md``
 and ``.json``: every index of properties.csv against that value per DU.
@@ -31,9 +31,9 @@ def noise_free_trials(run_dir: Path, seed: int = 2018):
     """Per DU of the paper preset: (du, trials (K, n_frames, M, 3) mm noise-free over the run's
     markers in its order, keep (M,) the run's kept markers, the schedule's timing, its command
     rows, fps). Each trial with its own trial-to-trial variation; no capture noise, no skin jitter."""
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
     from mocap.analysis.session_analysis import kept_markers
-    from mocap.schedules import trapezoid
+    from mocap.core.schedules import trapezoid
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
     from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
@@ -56,7 +56,7 @@ def noise_free_trials(run_dir: Path, seed: int = 2018):
 
 def truth_indices(run_dir: Path, seed: int = 2018) -> pd.DataFrame:
     """Per DU the paper's recipe on noise-free trials, over the run's kept markers."""
-    from mocap.analysis.paper_indices import paper_indices
+    from mocap.analysis.paper.indices import paper_indices
 
     rows = []
     for du, T, keep, tm, _, fps in noise_free_trials(run_dir, seed):
@@ -75,9 +75,9 @@ def noise_draws(run_dir: Path, draws: int, noise_mm: float = 0.025, seed: int = 
     axis added ``draws`` times (the noise covariance measured on still frames, the rest pooled
     with 15 other takes' rest frames as the session analysis does), against the recipe on the
     noise-free trials. Columns: mean and sd of the relative error."""
-    from mocap.analysis.noise_corrected import capture_noise_covariance, corrected_dyssynchrony
-    from mocap.analysis.paper_indices import paper_indices
-    from mocap.session import command_matrix
+    from mocap.analysis.noise.corrected import capture_noise_covariance, corrected_dyssynchrony
+    from mocap.analysis.paper.indices import paper_indices
+    from mocap.core.session import command_matrix
 
     rng = np.random.default_rng(seed)
     rows = []
@@ -112,11 +112,11 @@ def dense(path: Path, names: list) -> np.ndarray:
 def reanalyse(run_dir: Path, session_dir: Path) -> pd.DataFrame:
     """properties.csv again from the run's labeled trajectories (no reconstruction): the
     pipeline's averaging, rejections, noise floor and analyses with the code as it is now."""
-    from mocap.analysis.linearity import position_covariance
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.linearity import position_covariance
+    from mocap.analysis.paper.indices import schedule_timing
     from mocap.analysis.session_analysis import analyze_responses
-    from mocap.reconstruct.trials import average_trials, find_rejections, noise_floor
-    from mocap.session import command_matrix, load_session
+    from mocap.reconstruction.trials import average_trials, find_rejections, noise_floor
+    from mocap.core.session import command_matrix, load_session
 
     session = load_session(session_dir)
     names = json.loads((run_dir / "summary.json").read_text())["markers"]["names"]
@@ -195,7 +195,7 @@ def main() -> None:
                     help="also measure the corrected dyssynchrony's draw-to-draw scatter per DU "
                          "(this many noise draws on the noise-free trials)")
     args = ap.parse_args()
-    from mocap.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import RunSettings, run_session
 
     run_s = None
     if not (args.out / "summary.json").exists():
@@ -231,11 +231,11 @@ def main() -> None:
 
 `python benchmarks/paper_indices.py` (issue #16). The session: `run.py`'s `paper` preset (16 DUs,
 10 trials, 116 markers, capture noise about 0.025 mm). "truth": the paper's recipe
-(`mocap.analysis.paper_indices`, windows and t -> c conversion of METHOD.md) on the simulator's
+(`mocap.analysis.paper.indices`, windows and t -> c conversion of METHOD.md) on the simulator's
 noise-free positions of the same trials (each with its trial-to-trial variation; no capture
 noise, no skin jitter), over the markers the run kept. "paper": properties.csv's columns by the
 recipe on the measured data; "corrected": the noise-corrected estimates
-(`mocap.analysis.noise_corrected`); "along path", "step means": the along-path estimator's
+(`mocap.analysis.noise.corrected`); "along path", "step means": the along-path estimator's
 columns (docs/indices.md).
 
 {md}

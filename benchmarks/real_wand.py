@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     from mocap.calib.quality import pose_agreement
     from mocap.calib.wand_calibration import calibrate_session
     from mocap.interop.wand_points import CameraProfile, read_blob_table, write_wand_session
-    from mocap.session import load_session
+    from mocap.core.session import load_session
 
     blobs = read_blob_table(args.csv)
     cams = [CameraProfile(c, 1280, 800) for c in sorted(blobs.camera.unique())]

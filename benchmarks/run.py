@@ -65,7 +65,7 @@ def stage_simulate() -> dict:
 def stage_calibrate() -> dict:
     from mocap.calib.calibration_file import read_calibration
     from mocap.calib.wand_calibration import calibrate_session
-    from mocap.session import load_session
+    from mocap.core.session import load_session
 
     import numpy as np
 
@@ -206,8 +206,8 @@ def stage_peer() -> dict:
 def stage_reconstruct() -> dict:
     """Correspondence + triangulation + labeling of every face take of the paper session."""
     from mocap.calib.wand_calibration import calibrate_session
-    from mocap.pipeline import reconstruct
-    from mocap.session import load_session
+    from mocap.workflows.run.pipeline import reconstruct
+    from mocap.core.session import load_session
 
     session = load_session(CACHE / "session")
     calibration = calibrate_session(session)
@@ -300,11 +300,11 @@ def stage_run() -> dict:
     import numpy as np
     import pandas as pd
 
-    from mocap.pipeline import run_session
-    from mocap.run_outputs import WRITERS
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.outputs.run_writers import WRITERS
     from mocap.simulate import preset
     from mocap.simulate.session_writer import virtual_rig_and_face
-    from mocap.truth_properties import true_properties
+    from mocap.workflows.truth_properties import true_properties
 
     out = HERE / "cache" / "paper_run"
     if out.exists():  # a run into an earlier run's folder reuses its stages: time a first run
@@ -320,7 +320,7 @@ def stage_run() -> dict:
     fitted = {du: set(g["marker"][g["fitted"]]) for du, g in mp.groupby("du")}
     truth = true_properties(cfg, face, keep=fitted).set_index("du")
     est = pd.read_csv(out / "properties.csv").set_index("du")
-    # the truth here is the along-path estimator's definition (mocap.truth_properties): compare
+    # the truth here is the along-path estimator's definition (mocap.workflows.truth_properties): compare
     # its own columns; the paper's columns against their literal noise-free values are
     # benchmarks/paper_indices.py's
     err = {
@@ -359,9 +359,9 @@ def stage_run() -> dict:
 
 def stage_discrepancy() -> dict:
     """``mocap discrepancy`` on the paper run's output (no hidden effect: names nothing)."""
-    from mocap.analysis.discrepancy import DiscrepancySettings
-    from mocap.discrepancy_io import run
-    from mocap.discrepancy_outputs import WRITERS
+    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.workflows.discrepancy.results import run
+    from mocap.outputs.discrepancy import WRITERS
 
     src = HERE / "cache" / "paper_run"
     if not (src / "summary.json").exists():

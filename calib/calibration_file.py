@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mocap.calib.camera import Camera, CameraRig
-from mocap.atomic import write_text
+from mocap.core.atomic import write_text
 
 
 class CalibrationFileError(ValueError):

@@ -4,7 +4,7 @@ The operations are those of :func:`mocap.calib.camera.distort_normalized`,
 :func:`mocap.calib.camera.undistort_normalized` and :meth:`mocap.calib.camera.Camera.project`, in
 the same order (no fast-math, no fused multiply-add), so both give the same numbers; the tests
 compare them. Used by the fused triangulation (:mod:`mocap.calib.triangulation_kernel`) and by the
-correspondence search (:mod:`mocap.reconstruct.correspondence_kernel`).
+correspondence search (:mod:`mocap.reconstruction.correspondence_kernel`).
 
 Undistortion runs on blocks of points held in small contiguous buffers: the fixed-point round
 is then a loop without branches over the block, which LLVM vectorises (4 to 8 points per

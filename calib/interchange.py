@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.atomic import write_text
+from mocap.core.atomic import write_text
 from mocap.calib.calibration_file import CalibrationFileError, read_toml
 from mocap.calib.camera import Camera, CameraRig, rodrigues_from_rotation, rotation_from_rodrigues
 

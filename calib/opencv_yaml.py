@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from mocap.calib.camera import Camera
-from mocap.atomic import atomic_path
+from mocap.core.atomic import atomic_path
 
 
 def write_opencv_yaml(camera: Camera, path: str | os.PathLike) -> Path:

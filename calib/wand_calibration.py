@@ -401,7 +401,7 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
 def calibrate_session(session, *, max_frames: int = 3600,
                       intrinsics: IntrinsicsModel | None = None,
                       progress: Callable[[str], None] | None = None) -> CalibrationResult:
-    """Calibrate a loaded :class:`mocap.session.Session` from its wand and ground takes."""
+    """Calibrate a loaded :class:`mocap.core.session.Session` from its wand and ground takes."""
     wand_takes = session.takes_of_kind("wand")
     if not wand_takes:
         raise CalibrationError(f"{session.root}: the session has no 'wand' take to calibrate from")

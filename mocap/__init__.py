@@ -11,16 +11,15 @@ The Python API (:mod:`mocap.api`)::
 ``mocap.run`` are imported on first use, so ``import mocap`` stays light (it imports neither
 rerun, matplotlib nor dask; nor do these functions unless a run writes its figures or recording).
 
-Subpackages: ``mocap.calib`` (camera models, wand calibration), ``mocap.reconstruct``
-(correspondence, labeling, trials), ``mocap.analysis`` (the paper's analyses, the face model),
-``mocap.simulate`` (the virtual face and rig), ``mocap.interop`` (vendors' files).
+Subpackages, one layer each (imports go one way, down this list): ``mocap.core`` (session
+types, manifest, readers), ``mocap.calib`` (camera models, wand calibration), ``mocap.simulate``
+(the virtual face and rig), ``mocap.reconstruction`` (correspondence, labeling, trials) and
+``mocap.interop`` (vendors' files), ``mocap.analysis`` (the paper's analyses, the face model),
+``mocap.workflows`` (run, audit, discrepancy, design), ``mocap.outputs`` (figures, Rerun),
+``mocap.cli``.
 
 Units everywhere: millimetres (mm), pixels (px), seconds (s), command units (integers 0..255).
 """
-
-import sys
-
-from mocap._facade import _Package
 
 __version__ = "0.1.0"
 
@@ -28,16 +27,12 @@ __all__ = ["load_session", "calibrate", "reconstruct", "analyze", "run", "RunSet
 
 
 def __getattr__(name: str):
-    if name == "reconstruct":  # the subpackage, callable (see _ReconstructPackage)
-        import mocap.reconstruct
-
-        return mocap.reconstruct
-    if name in ("load_session", "calibrate", "analyze", "run"):
+    if name in ("load_session", "calibrate", "reconstruct", "analyze", "run"):
         from mocap import api
 
         return getattr(api, name)
     if name == "RunSettings":
-        from mocap.run_settings import RunSettings
+        from mocap.workflows.run.settings import RunSettings
 
         return RunSettings
     raise AttributeError(f"module 'mocap' has no attribute {name!r}")
@@ -45,7 +40,3 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted(list(globals()) + __all__)
-
-
-# ``mocap.reconstruct`` is both the subpackage and the API's stage function (mocap._facade)
-sys.modules[__name__].__class__ = _Package

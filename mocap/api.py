@@ -14,7 +14,7 @@ or stage by stage::
     recon = mocap.reconstruct(session, calibration)
     analysis = mocap.analyze(session, recon)     # .properties, .linearity, .rejections, .motions
 
-Settings are :class:`mocap.run_settings.RunSettings` fields, passed by name
+Settings are :class:`mocap.workflows.run.settings.RunSettings` fields, passed by name
 (``mocap.run(session, min_cameras=2, bootstrap_samples=0)``); ``mocap run --print-config``
 lists them with their defaults and meanings. Units: mm, px, s, command units.
 """
@@ -23,16 +23,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mocap.pipeline import Analysis, RunResult
-from mocap.pipeline import analyze as _analyze
-from mocap.pipeline import calibrate as _calibrate
-from mocap.pipeline import reconstruct as _reconstruct
-from mocap.pipeline import run as _run
-from mocap.reconstruct.takes import Reconstruction
-from mocap.run_outputs import WRITERS
-from mocap.run_settings import RunSettings, with_values
-from mocap.session import Session
-from mocap.session import load_session as _load_session
+from mocap.workflows.run.pipeline import Analysis, RunResult
+from mocap.workflows.run.pipeline import analyze as _analyze
+from mocap.workflows.run.pipeline import calibrate as _calibrate
+from mocap.workflows.run.pipeline import reconstruct as _reconstruct
+from mocap.workflows.run.pipeline import run as _run
+from mocap.reconstruction.takes import Reconstruction
+from mocap.outputs.run_writers import WRITERS
+from mocap.workflows.run.settings import RunSettings, with_values
+from mocap.core.session import Session
+from mocap.core.session import load_session as _load_session
 
 __all__ = ["load_session", "calibrate", "reconstruct", "analyze", "run"]
 
@@ -53,7 +53,7 @@ def _settings(settings: RunSettings | None, overrides: dict, where: str) -> RunS
 
 def load_session(path: str | Path) -> Session:
     """The session folder ``path`` (holding session.toml), checked against the input contract;
-    a ``mocap.session.SessionError`` names the file, row or key of any violation."""
+    a ``mocap.core.session.SessionError`` names the file, row or key of any violation."""
     return _load_session(path)
 
 

@@ -120,8 +120,8 @@ def small_truth(small_sim) -> dict:
 def small_run(small_sim, tmp_path_factory):
     """``mocap run``'s library call on the small raw session (figures and session.rrd
     included): the RunResult."""
-    from mocap.pipeline import run_session
-    from mocap.run_outputs import WRITERS
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.outputs.run_writers import WRITERS
 
     return run_session(small_sim / "session", tmp_path_factory.mktemp("small_run"),
                        writers=WRITERS)
@@ -130,8 +130,8 @@ def small_run(small_sim, tmp_path_factory):
 @pytest.fixture(scope="session")
 def sample_run(tmp_path_factory):
     """``mocap run`` on the committed sample session (what the README's main command does)."""
-    from mocap.pipeline import run_session
-    from mocap.run_outputs import WRITERS
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.outputs.run_writers import WRITERS
 
     root = Path(__file__).resolve().parents[1] / "sample_data" / "session"
     return run_session(root, tmp_path_factory.mktemp("sample_run"), writers=WRITERS)

@@ -209,7 +209,7 @@ def check_import(path: Path, out: Path) -> str:
 def check_session(root: Path, must_load: bool = False) -> str:
     """Load ``root`` and read every take and commands file: "ok", or "error" (a SessionError
     naming a file of the session); with ``must_load`` an error fails the check."""
-    from mocap.session import SessionError, SessionWarning, load_session
+    from mocap.core.session import SessionError, SessionWarning, load_session
 
     names = {"session.toml", "markers.csv"} | {p.name for p in root.rglob("*") if p.is_file()}
     try:

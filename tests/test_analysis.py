@@ -6,13 +6,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mocap.analysis.displacement import normalized, normalized_along
-from mocap.analysis.linearity import spatial_linearity
-from mocap.analysis.logistic_fit import fit_logistic
-from mocap.analysis.plans import PLAN_NAMES, plan
-from mocap.analysis.properties import du_properties, dyssynchrony, find_ramps
-from mocap.analysis.response import inverse_sigmoid, sigmoid
-from mocap.schedules import sample_commands, trapezoid
+from mocap.analysis.paper.displacement import normalized, normalized_along
+from mocap.analysis.paper.linearity import spatial_linearity
+from mocap.analysis.paper.logistic_fit import fit_logistic
+from mocap.analysis.design.plans import PLAN_NAMES, plan
+from mocap.analysis.paper.properties import du_properties, dyssynchrony, find_ramps
+from mocap.analysis.paper.response import inverse_sigmoid, sigmoid
+from mocap.core.schedules import sample_commands, trapezoid
 
 FPS = 120.0
 
@@ -78,8 +78,8 @@ def step_response(alpha, beta_f, beta_b, n_markers, beta_sd, seed=0):
 
 
 def test_step_dyssynchrony_removes_noise():
-    from mocap.analysis.displacement import plateau_mask
-    from mocap.analysis.properties import dyssynchrony_steps
+    from mocap.analysis.paper.displacement import plateau_mask
+    from mocap.analysis.paper.properties import dyssynchrony_steps
     from mocap.analysis.session_analysis import delta_noise_variance
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=40, beta_sd=5.0)
@@ -104,7 +104,7 @@ def test_step_dyssynchrony_removes_noise():
 
 def test_step_noise_factor_is_the_step_means_error_variance():
     """Monte-Carlo of the first-order error of a step mean of (x - r) / (p - r)."""
-    from mocap.analysis.properties import command_runs, step_noise_factor
+    from mocap.analysis.paper.properties import command_runs, step_noise_factor
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=3, beta_sd=5.0)
     start, length = command_runs(c)
@@ -159,7 +159,7 @@ def test_spatial_linearity():
 def test_corrected_linearity_of_curved_paths_with_step_noise():
     """Noise covariance measured within the command steps, subtracted without flooring: the
     corrected linearity matches the noise-free one, straight (1) or curved (< 1)."""
-    from mocap.analysis.linearity import step_noise_covariance
+    from mocap.analysis.paper.linearity import step_noise_covariance
 
     c, delta = step_response(0.05, 170.0, 95.0, n_markers=30, beta_sd=5.0)
     bend = np.linspace(0.0, 0.8, 30)  # 0: straight, up to a strongly bent path
@@ -189,7 +189,7 @@ def test_noise_corrected_indices_unbiased_monte_carlo():
     dyssynchrony and linearity against the truth (the estimator's formulas on the noise-free
     trial means, over the markers it fitted). DU 1 (12 fitted markers, true dyssynchrony 0.003)
     and DU 12 (0.008) are the low ones: the earlier correction was 24 % and 5 % low on them."""
-    from mocap.reconstruct.trials import NORMALISE_S, average_trials
+    from mocap.reconstruction.trials import NORMALISE_S, average_trials
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
     from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
@@ -278,7 +278,7 @@ def test_properties_file(small_run):
 def test_properties_match_truth(small_sim, small_run):
     from mocap.simulate import preset
     from mocap.simulate.session_writer import virtual_rig_and_face
-    from mocap.truth_properties import true_properties
+    from mocap.workflows.truth_properties import true_properties
 
     cfg = preset("small", seed=11, battery=False)
     _, _, face = virtual_rig_and_face(cfg)
@@ -334,7 +334,7 @@ def test_figures_drawn_in_worker_processes_are_those_drawn_in_the_run(small_run,
     """A session with many figures (the paper preset's 39) draws them on the run's processes:
     the files are byte for byte those one process draws (the small run's 15, drawn in-process
     below the threshold, against the same drawn on two workers)."""
-    from mocap import run_outputs
+    from mocap.outputs import run_writers as run_outputs
 
     monkeypatch.setattr(run_outputs, "PARALLEL_MIN_FIGURES", 1)
     r = small_run

@@ -16,7 +16,7 @@ import pytest
 
 import mocap
 from conftest import make_session
-from mocap.run_settings import RunSettings, describe, from_toml, settings_table, with_values
+from mocap.workflows.run.settings import RunSettings, describe, from_toml, settings_table, with_values
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -148,7 +148,7 @@ def test_figures_draw_into_given_axes_without_pyplot():
 import sys
 import numpy as np
 from matplotlib.figure import Figure
-from mocap.analysis import figures as F
+from mocap.outputs import figures as F
 fig = Figure()
 ax = fig.subplots()
 got = F.linearity_bars([1, 4], [0.9, 0.8], [0.05, 0.1], ax=ax)

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from conftest import make_session
-from mocap.pipeline import RunSettings, run_session
+from mocap.workflows.run.pipeline import RunSettings, run_session
 
 
 def flagged(audit):
@@ -65,7 +65,7 @@ def test_labeled_session_audit(tmp_path):
 
 
 def _two_camera_run(tmp_path, nose_bridge_cameras, min_cameras, seed):
-    from mocap.reconstruct.correspondence import ReconstructionSettings
+    from mocap.reconstruction.correspondence import ReconstructionSettings
 
     root = make_session(tmp_path / "s", seed=seed, du_ids=(4,), n_trials=3, n_markers=24,
                         motion_plans=(), battery=False, wand_duration_s=10.0,
@@ -115,9 +115,9 @@ def test_audit_judges_markers_by_the_runs_min_cameras():
     """A marker seen by 2 cameras passes a --min-cameras 2 run and fails a 3-camera one."""
     import numpy as np
 
-    from mocap.audit import audit_capture
-    from mocap.reconstruct.labeling import MarkerSet
-    from mocap.reconstruct.takes import CaptureCounts, Reconstruction
+    from mocap.workflows.audit import audit_capture
+    from mocap.reconstruction.labeling import MarkerSet
+    from mocap.reconstruction.takes import CaptureCounts, Reconstruction
 
     views = np.array([[90, 90, 90], [90, 90, 0], [90, 0, 0], [0, 0, 0]])  # (camera, marker)
     cap = CaptureCounts(np.full(3, 90), 100, np.zeros(3, int), np.zeros(3, int), views=views)

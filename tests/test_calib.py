@@ -15,7 +15,7 @@ from mocap.calib.triangulation import triangulate
 from mocap.calib.wand import find_wand
 from mocap.calib.wand_calibration import CalibrationError, calibrate_session
 from conftest import make_session
-from mocap.session import load_session
+from mocap.core.session import load_session
 
 NOISE_PX = 0.08
 MINIMAL = dict(du_ids=(4,), n_trials=1, motion_plans=(), battery=False)

@@ -6,15 +6,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mocap.reconstruct import correspondence_kernel as kern
-from mocap.reconstruct.correspondence import (
+from mocap.reconstruction import correspondence_kernel as kern
+from mocap.reconstruction.correspondence import (
     BlobIndex,
     BlobTable,
     ReconstructionSettings,
     reconstruct_points,
 )
-from mocap.reconstruct.labeling import LabelSettings, link_tracklets
-from mocap.reconstruct.reference import (
+from mocap.reconstruction.labeling import LabelSettings, link_tracklets
+from mocap.reconstruction.reference import (
     blob_table_reference,
     link_tracklets_reference,
     reconstruct_points_reference,
@@ -180,7 +180,7 @@ def test_empty_take():
 @pytest.mark.parametrize("dtype", ["str", object, "category", "string[pyarrow]"])
 def test_blob_camera_index_matches_camera_index(dtype):
     from mocap.calib.camera import camera_index
-    from mocap.reconstruct.correspondence import blob_camera_index
+    from mocap.reconstruction.correspondence import blob_camera_index
 
     ids = ["cam1", "cam2", "cam3"]
     values = pd.Series(["cam2", "cam1", "camX", "cam3", "cam2", None], dtype=dtype)

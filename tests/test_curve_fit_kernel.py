@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mocap.analysis.curve_fit_kernel import tangent_products
+from mocap.analysis.model.curve_fit_kernel import tangent_products
 
 
 @pytest.mark.parametrize("K", [0, 3])

@@ -6,11 +6,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design
+from mocap.analysis.design.inverse_response import PlanTiming, SigmoidPair, paper_design
 from conftest import make_session
 from mocap.cli import main
-from mocap.pipeline import run_session
-from mocap.run_outputs import WRITERS
+from mocap.workflows.run.pipeline import run_session
+from mocap.outputs.run_writers import WRITERS
 
 FACE = dict(du_ids=(1, 4, 7, 11, 12), n_trials=3, n_markers=60, battery=False, motion_plans=(),
             labeled=True, seed=5)

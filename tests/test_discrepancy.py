@@ -14,15 +14,15 @@ import pandas as pd
 import pytest
 from conftest import make_session
 
-from mocap.analysis.discrepancy import DiscrepancySettings, prepare, run_discrepancy, trial_noise
-from mocap.analysis.face_model import FaceModel
-from mocap.analysis.hysteresis import play
-from mocap.analysis.hysteresis_fit import pi_logistic
-from mocap.analysis.model_effects import CANDIDATES, CATALOGUE, Effect, summarize_schedules
-from mocap.analysis.model_fit import ModelData, TakeData, fit_curves, profile_effect
-from mocap.analysis.play_kernel import pi_logistic_from_table, play_table
-from mocap.discrepancy_input import load_measured
-from mocap.schedules import identification_battery, trapezoid
+from mocap.analysis.discrepancy.workflow import DiscrepancySettings, prepare, run_discrepancy, trial_noise
+from mocap.analysis.model.face_model import FaceModel
+from mocap.analysis.model.hysteresis import play
+from mocap.analysis.paper.hysteresis_fit import pi_logistic
+from mocap.analysis.model.effects import CANDIDATES, CATALOGUE, Effect, summarize_schedules
+from mocap.analysis.model.fit import ModelData, TakeData, fit_curves, profile_effect
+from mocap.analysis.model.play_kernel import pi_logistic_from_table, play_table
+from mocap.workflows.discrepancy.inputs import load_measured
+from mocap.core.schedules import identification_battery, trapezoid
 from mocap.simulate import preset
 from mocap.simulate.effects import EFFECTS, HiddenEffect, make_effect
 from mocap.simulate.motion import true_positions
@@ -113,7 +113,7 @@ def test_two_hidden_effects_compose_in_the_simulator_and_the_model(face):
 def test_second_order_pair_terms_are_the_plain_products():
     """pair_terms with the second order C2: y_a y_b C + y_a^2 y_b C2_0 + y_a y_b^2 C2_1 summed
     over the take's pairs, written out plainly for three DUs; first order alone without C2."""
-    from mocap.analysis.face_model import pair_terms
+    from mocap.analysis.model.face_model import pair_terms
 
     rng = np.random.default_rng(3)
     S, M = 7, 5
@@ -213,7 +213,7 @@ def _session(tmp_path_factory, effect: str, seed: int = 1, labeled: bool = True,
 
 
 def _run(root: Path, out: Path | None = None, **settings):
-    from mocap.discrepancy_io import run
+    from mocap.workflows.discrepancy.results import run
 
     out = out or root / "discrepancy"
     res = run(root / "session", out, DiscrepancySettings(jobs=2, **settings), recording=False)
@@ -419,7 +419,7 @@ def test_drift_interval_covers_the_generating_trend():
     battery's takes in trial 1, shifts scattered with SD 2 about the trend. Over 400 draws the
     interval holds the generating slope 91-99 % of the time (binomial 3 sd about 95 %); a
     plain +-1 standard error would hold it about 68 % of the time."""
-    from mocap.analysis.discrepancy import shift_trend, trend_interval
+    from mocap.analysis.discrepancy.workflow import shift_trend, trend_interval
 
     rng = np.random.default_rng(7)
     k, hits, narrow = 4.0, 0, 0

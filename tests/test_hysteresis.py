@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mocap.analysis.hysteresis import pi_mean_halfwidth, play, prandtl_ishlinskii
+from mocap.analysis.model.hysteresis import pi_mean_halfwidth, play, prandtl_ishlinskii
 
 
 def sweep(n=256):
@@ -78,8 +78,8 @@ def test_pi_vectorises_over_channels():
 
 
 def test_pi_logistic_fit_recovers_parameters_from_minor_loops():
-    from mocap.analysis.hysteresis_fit import fit_pi_logistic, pi_logistic
-    from mocap.schedules import ramp_through, sample_commands, trapezoid
+    from mocap.analysis.paper.hysteresis_fit import fit_pi_logistic, pi_logistic
+    from mocap.core.schedules import ramp_through, sample_commands, trapezoid
 
     t = np.arange(0, 6.0, 1 / 120)
     c_trap = sample_commands(trapezoid(4), [4], t)[:, 0]
@@ -99,8 +99,8 @@ def test_pi_logistic_fit_recovers_parameters_from_minor_loops():
 
 def test_pi_logistic_is_the_virtual_faces_static_model():
     """Fitted on the virtual face's noise-free response, the model returns the face's truth."""
-    from mocap.analysis.hysteresis_fit import fit_pi_logistic
-    from mocap.schedules import sample_commands, trapezoid
+    from mocap.analysis.paper.hysteresis_fit import fit_pi_logistic
+    from mocap.core.schedules import sample_commands, trapezoid
     from mocap.simulate.effects import HiddenEffect
     from mocap.simulate.face import make_face
     from mocap.simulate.motion import normalized_response

@@ -21,7 +21,7 @@ from mocap.interop.c3d_file import read_c3d, write_c3d
 from mocap.interop.marker_data import ImportError_, MarkerData
 from mocap.interop.session_io import import_files
 from mocap.interop.vendor_text import read_vicon_csv
-from mocap.session import load_session
+from mocap.core.session import load_session
 
 
 def _c3d(tmp_path, names=("Knee", "Heel", "Toe")):

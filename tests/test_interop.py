@@ -61,7 +61,7 @@ def test_labeled_session_from_c3d_runs(small_run, tmp_path):
     rows = rows[rows["du"] == 4]
     orig = small_run.session.read_commands("du04_t01")
     # one row per change, same schedule as the original (which also holds repeats)
-    from mocap.session import command_matrix
+    from mocap.core.session import command_matrix
 
     n = 606
     assert np.array_equal(command_matrix(rows, 120.0, n, [4]), command_matrix(orig, 120.0, n, [4]))
@@ -130,7 +130,7 @@ def test_import_cli_reports_what_to_complete(tmp_path, capsys):
 @pytest.mark.parametrize("name", ["vicon_nexus24_markers_emg.c3d", "qualisys_qtm217_forceplates.c3d",
                                   "ndi_optotrak_30hz.c3d"])
 def test_real_c3d_files_import_audit_and_reexport(tmp_path, name):
-    from mocap.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import RunSettings, run_session
 
     src = REALDATA / name
     orig = read_c3d(src)

@@ -1,16 +1,14 @@
-"""Imports go one way (issue #18; docs/architecture.md).
+"""Imports go one way (docs/architecture.md): the layers are folders.
 
 Every module of the package is parsed with ``ast`` and every import in it, including those inside
-functions, is checked against the module's layer:
+functions, is checked against the module's layer, which is its folder:
 
     core <- calib <- simulate (core and calib only)
-    core <- calib <- reconstruction <- analysis <- workflows <- outputs <- cli
+    core <- calib <- reconstruction (and interop) <- analysis <- workflows <- outputs <- cli
 
-A module may import its own layer and the layers below it. Layers are assigned per module, not per
-folder (``analysis/figures.py`` is an outputs module living in analysis/). Only
-``mocap.recording`` imports rerun, only the figure modules matplotlib, only ``mocap.batch`` dask.
-A module the map does not place fails the test: decide its layer in ``LAYER_OF`` and in
-docs/architecture.md.
+A module may import its own layer and the layers below it. Only ``mocap.outputs`` imports
+matplotlib and rerun, only ``mocap.workflows.batch`` dask. The package's entry points
+(``mocap/__init__.py``, ``mocap/api.py``) sit above every layer.
 """
 
 from __future__ import annotations
@@ -25,11 +23,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"mocap": ROOT / "mocap", "mocap.calib": ROOT / "calib", "mocap.analysis": ROOT / "analysis"}
 
-# what each layer may import (itself included); the package's __init__ ("facade") only
-# re-exports, from any layer, and any module may import it (it holds __version__)
+# what each layer may import (itself included); the entry points may import any layer, and any
+# module may import the package's __init__ (it holds __version__)
 ALLOWED = {
-    "facade": {"core", "calib", "simulate", "reconstruction", "analysis", "workflows", "outputs",
-               "cli", "facade"},
+    "entry": {"core", "calib", "simulate", "reconstruction", "analysis", "workflows", "outputs",
+              "cli", "entry"},
     "core": {"core"},
     "calib": {"core", "calib"},
     "simulate": {"core", "calib", "simulate"},
@@ -41,46 +39,25 @@ ALLOWED = {
             "cli"},
 }
 
-# modules placed one by one (mocap's top level), then packages by prefix (longest first)
-LAYER_OF = {
-    "mocap": "facade",  # mocap/__init__.py only re-exports (test_the_package_init_only_reexports)
-    "mocap._facade": "facade",  # the package object that makes mocap.reconstruct callable
-    "mocap.session": "core",
-    "mocap.schedules": "core",
-    "mocap.atomic": "core",
-    "mocap.paths": "core",
-    "mocap.errors": "core",
-    "mocap.pipeline": "workflows",
-    "mocap.audit": "workflows",
-    "mocap.batch": "workflows",
-    "mocap.discrepancy_input": "workflows",
-    "mocap.discrepancy_io": "workflows",
-    "mocap.design_io": "workflows",
-    "mocap.truth_properties": "workflows",  # the simulator's truth through the analyses' estimators
-    "mocap.api": "cli",  # an entry point beside the CLI: its run() writes figures and session.rrd
-    "mocap.run_settings": "workflows",  # the run's settings (sections from reconstruct.settings)
-    "mocap.run_cache": "workflows",  # stage keys and stored results of a run's output folder
-    "mocap.run_lock": "workflows",  # one run per output folder
-    "mocap.recording": "outputs",
-    "mocap.run_outputs": "outputs",  # the run's figure and recording writers (RunWriters)
-    "mocap.discrepancy_outputs": "outputs",  # the discrepancy workflow's figures and recording
-    "mocap.analysis.figures": "outputs",
-    "mocap.cli": "cli",
-}
-PACKAGES = {
+# the folder rules: a module's layer is that of the longest folder (package) holding it
+ENTRY_POINTS = {"mocap", "mocap.api"}  # mocap/__init__.py and mocap/api.py: above every layer
+FOLDER_LAYERS = {
+    "mocap.core": "core",
     "mocap.calib": "calib",
     "mocap.simulate": "simulate",
-    "mocap.reconstruct": "reconstruction",
+    "mocap.reconstruction": "reconstruction",
     "mocap.interop": "reconstruction",
     "mocap.analysis": "analysis",
-    "mocap.commands": "cli",
+    "mocap.workflows": "workflows",
+    "mocap.outputs": "outputs",
+    "mocap.cli": "cli",
 }
 
 # third-party packages only some modules may import
 RESTRICTED = {
-    "rerun": {"mocap.recording"},
-    "matplotlib": {"mocap.analysis.figures"},
-    "dask": {"mocap.batch"},
+    "rerun": {"mocap.outputs"},
+    "matplotlib": {"mocap.outputs"},
+    "dask": {"mocap.workflows.batch"},
 }
 
 # back-imports other branches are removing; each names who and why. Entries are allowed, not
@@ -88,12 +65,16 @@ RESTRICTED = {
 PENDING: dict[tuple[str, str], str] = {}
 
 
+def _within(module: str, packages) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
 def layer_of(module: str) -> str | None:
-    if module in LAYER_OF:
-        return LAYER_OF[module]
-    for prefix in sorted(PACKAGES, key=len, reverse=True):
-        if module == prefix or module.startswith(prefix + "."):
-            return PACKAGES[prefix]
+    if module in ENTRY_POINTS:
+        return "entry"
+    for prefix in sorted(FOLDER_LAYERS, key=len, reverse=True):
+        if _within(module, [prefix]):
+            return FOLDER_LAYERS[prefix]
     return None
 
 
@@ -144,21 +125,21 @@ def violations(graph: dict[str, list[tuple[str, int]]], layer=layer_of,
         mine = layer(module)
         for target, line in imports:
             top = target.split(".")[0]
-            if top in RESTRICTED and module not in RESTRICTED[top]:
+            if top in RESTRICTED and not _within(module, RESTRICTED[top]):
                 bad.append(f"{module}:{line} imports {target}: only {sorted(RESTRICTED[top])} may")
             if top != "mocap" or (module, target) in pending:
                 continue
             theirs = layer(target)
             if mine is None or theirs is None:
                 continue  # reported by test_every_module_has_a_layer
-            if theirs != "facade" and theirs not in ALLOWED[mine]:
+            if theirs not in ALLOWED[mine] and target != "mocap":
                 bad.append(f"{module}:{line} ({mine}) imports {target} ({theirs})")
     return bad
 
 
 def test_every_module_has_a_layer():
     unplaced = [m for m in package_modules() if layer_of(m) is None]
-    assert not unplaced, f"place these modules in a layer (LAYER_OF, docs/architecture.md): {unplaced}"
+    assert not unplaced, f"move these modules into a layer's folder (FOLDER_LAYERS, docs/architecture.md): {unplaced}"
 
 
 def test_imports_go_one_way():
@@ -180,9 +161,6 @@ def test_the_package_init_only_reexports():
                 continue
         if isinstance(node, ast.FunctionDef) and node.name in ("__getattr__", "__dir__"):
             continue
-        if (isinstance(node, ast.Assign) and len(node.targets) == 1
-                and ast.unparse(node.targets[0]) == "sys.modules[__name__].__class__"):
-            continue  # the package object (mocap._facade): mocap.reconstruct is also callable
         raise AssertionError(f"mocap/__init__.py line {node.lineno}: only re-exports belong here")
 
 
@@ -197,27 +175,27 @@ def test_pending_back_imports_are_still_there():
 # The check catches what issue #18 found (a synthetic graph, one back-import at a time)
 
 BACK_IMPORTS = [
-    ("mocap.reconstruct.trials", "mocap.analysis.displacement"),  # reconstruction -> analysis
-    ("mocap.simulate.face", "mocap.analysis.hysteresis"),  # simulate -> analysis
-    ("mocap.simulate.session_writer", "mocap.reconstruct.trials"),  # simulate -> reconstruction
-    ("mocap.audit", "mocap.analysis.figures"),  # workflows -> outputs
-    ("mocap.pipeline", "mocap.recording"),  # workflows -> outputs
-    ("mocap.calib.wand", "mocap.reconstruct.correspondence"),  # calib -> reconstruction
-    ("mocap.session", "mocap.calib.camera"),  # core -> calib
-    ("mocap.analysis.properties", "mocap.pipeline"),  # analysis -> workflows
-    ("mocap.recording", "mocap.cli"),  # outputs -> cli
-    ("mocap.discrepancy_io", "mocap.analysis.figures"),  # workflows -> outputs
-    ("mocap.batch", "mocap.run_outputs"),  # workflows -> outputs (writers are passed in)
-    ("mocap.run_outputs", "mocap.api"),  # outputs -> the API entry point
+    ("mocap.reconstruction.trials", "mocap.analysis.paper.displacement"),  # reconstruction -> analysis
+    ("mocap.simulate.face", "mocap.analysis.model.hysteresis"),  # simulate -> analysis
+    ("mocap.simulate.session_writer", "mocap.reconstruction.trials"),  # simulate -> reconstruction
+    ("mocap.workflows.audit", "mocap.outputs.figures"),  # workflows -> outputs
+    ("mocap.workflows.run.pipeline", "mocap.outputs.recording"),  # workflows -> outputs
+    ("mocap.calib.wand", "mocap.reconstruction.correspondence"),  # calib -> reconstruction
+    ("mocap.core.session", "mocap.calib.camera"),  # core -> calib
+    ("mocap.analysis.paper.properties", "mocap.workflows.run.pipeline"),  # analysis -> workflows
+    ("mocap.outputs.recording", "mocap.cli"),  # outputs -> cli
+    ("mocap.workflows.discrepancy.results", "mocap.outputs.figures"),  # workflows -> outputs
+    ("mocap.workflows.batch", "mocap.outputs.run_writers"),  # workflows -> outputs (writers are passed in)
+    ("mocap.outputs.run_writers", "mocap.api"),  # outputs -> the API entry point
 ]
 FINE = [
-    ("mocap.calib.calibration_file", "mocap.atomic"),  # calib -> core
-    ("mocap.analysis.design", "mocap.schedules"),  # analysis -> core
-    ("mocap.analysis.session_analysis", "mocap.reconstruct.trials"),  # analysis -> reconstruction
-    ("mocap.commands.design", "mocap.analysis.figures"),  # cli -> outputs
-    ("mocap.design_io", "mocap.simulate.motion"),  # workflows -> simulate
-    ("mocap.api", "mocap.run_outputs"),  # the API entry point -> outputs
-    ("mocap.run_outputs", "mocap.pipeline"),  # outputs -> workflows
+    ("mocap.calib.calibration_file", "mocap.core.atomic"),  # calib -> core
+    ("mocap.analysis.design.inverse_response", "mocap.core.schedules"),  # analysis -> core
+    ("mocap.analysis.session_analysis", "mocap.reconstruction.trials"),  # analysis -> reconstruction
+    ("mocap.cli.commands.design", "mocap.outputs.figures"),  # cli -> outputs
+    ("mocap.workflows.design", "mocap.simulate.motion"),  # workflows -> simulate
+    ("mocap.api", "mocap.outputs.run_writers"),  # the API entry point -> outputs
+    ("mocap.outputs.run_writers", "mocap.workflows.run.pipeline"),  # outputs -> workflows
 ]
 
 
@@ -232,26 +210,26 @@ def test_downward_imports_pass(edge):
     assert violations({edge[0]: [(edge[1], 1)]}, pending={}) == []
 
 
-@pytest.mark.parametrize("module, target", [("mocap.audit", "rerun"),
-                                            ("mocap.analysis.discrepancy", "matplotlib.pyplot"),
-                                            ("mocap.pipeline", "dask.distributed")])
+@pytest.mark.parametrize("module, target", [("mocap.workflows.audit", "rerun"),
+                                            ("mocap.analysis.discrepancy.workflow", "matplotlib.pyplot"),
+                                            ("mocap.workflows.run.pipeline", "dask.distributed")])
 def test_restricted_packages_are_caught(module, target):
     assert len(violations({module: [(target, 3)]}, pending={})) == 1
 
 
 def test_function_local_and_relative_imports_are_seen(tmp_path):
     f = tmp_path / "trials.py"
-    f.write_text("import numpy\n\ndef g():\n    from mocap.analysis import displacement\n"
-                 "    from ..analysis.figures import x\n    from . import labeling\n")
-    known = {"mocap.analysis.displacement", "mocap.analysis.figures", "mocap.reconstruct.labeling"}
-    got = imports_of("mocap.reconstruct.trials", f, known)
-    assert ("mocap.analysis.displacement", 4) in got
-    assert ("mocap.analysis.figures", 5) in got  # ..analysis.figures from mocap.reconstruct
-    assert ("mocap.reconstruct.labeling", 6) in got
+    f.write_text("import numpy\n\ndef g():\n    from mocap.analysis.paper import displacement\n"
+                 "    from ..outputs.figures import x\n    from . import labeling\n")
+    known = {"mocap.analysis.paper.displacement", "mocap.outputs.figures", "mocap.reconstruction.labeling"}
+    got = imports_of("mocap.reconstruction.trials", f, known)
+    assert ("mocap.analysis.paper.displacement", 4) in got
+    assert ("mocap.outputs.figures", 5) in got  # ..analysis.figures from mocap.reconstruction
+    assert ("mocap.reconstruction.labeling", 6) in got
 
 
 def test_import_mocap_pulls_in_no_heavy_package():
-    code = ("import sys, mocap, mocap.session, mocap.calib, mocap.analysis, mocap.reconstruct; "
+    code = ("import sys, mocap, mocap.core.session, mocap.calib, mocap.analysis, mocap.reconstruct; "
             "print(sorted(m for m in ('rerun', 'matplotlib', 'dask') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

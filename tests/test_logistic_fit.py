@@ -4,7 +4,7 @@ through their sums per abscissa: the same fit as on every sample."""
 import numpy as np
 from scipy.optimize import least_squares
 
-from mocap.analysis.logistic_fit import _model, fit_logistic, grouped_samples
+from mocap.analysis.paper.logistic_fit import _model, fit_logistic, grouped_samples
 
 
 def pooled_data(seed: int = 0, n: int = 150, markers: int = 40):

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mocap.analysis.design import PlanTiming, SigmoidPair, paper_design, paper_design_series
-from mocap.analysis.model_design import (
+from mocap.analysis.design.inverse_response import PlanTiming, SigmoidPair, paper_design, paper_design_series
+from mocap.analysis.design.model_based import (
     command_times,
     design_commands,
     debiased_delta,
@@ -34,11 +34,11 @@ from mocap.analysis.model_design import (
     tracking_floor,
     with_hold,
 )
-from mocap.analysis.plans import PLAN_NAMES
+from mocap.analysis.design.plans import PLAN_NAMES
 from conftest import make_session
 from mocap.cli import main
-from mocap.design_io import identify_model, load_model, play_virtual, save_model, virtual_face_of
-from mocap.truth_properties import true_properties
+from mocap.workflows.design import identify_model, load_model, play_virtual, save_model, virtual_face_of
+from mocap.workflows.truth_properties import true_properties
 
 DUS = (1, 7, 12)
 FACE = dict(du_ids=DUS, n_markers=20, n_trials=2, labeled=True, motion_plans=(), seed=3)
@@ -122,7 +122,7 @@ def _random_steps(fps: float, n_steps: int, sd: float, seed: int):
 def test_stepped_plant_matches_the_face_model(lag_face):
     """Stepping the model between command steps gives the model's own response to random
     commands (hysteresis with reversals everywhere, and the lag), read at frames inside the steps."""
-    from mocap.analysis.face_model import take_tables
+    from mocap.analysis.model.face_model import take_tables
 
     model = lag_face.model
     step_s, levels, rows, n_frames, frac, frames = _random_steps(model.fps, 60, 40.0, seed=1)
@@ -140,8 +140,8 @@ def test_stepped_plant_matches_the_face_model_with_a_dead_band(lag_face, form):
     """The same with a dead band of 10 command units behind the lag, in either of its forms:
     the stick-slip one holds after each reversal and releases with a jump (its state carries the
     direction of the last motion from step to step)."""
-    from mocap.analysis.face_model import take_tables
-    from mocap.analysis.model_effects import Backlash, StickSlipBacklash
+    from mocap.analysis.model.face_model import take_tables
+    from mocap.analysis.model.effects import Backlash, StickSlipBacklash
 
     cls = StickSlipBacklash if form == "stick-slip" else Backlash
     model = lag_face.model.with_effects(lag_face.model.effects + (cls(10.0),))
@@ -647,7 +647,7 @@ def test_refinement_from_noisy_takes_learns_the_designs_mean_error(plain_face):
     (only the model's error is read in those weights). Measured, model / paper RMS after one
     play: plan C 0.108 with it, 0.132 without (noise-free plays: 0.072); plan D 0.126 and 0.158
     (0.098)."""
-    from mocap.design_io import play_virtual_take
+    from mocap.workflows.design import play_virtual_take
 
     for plan in ("C", "D"):
         ref = plan_reference(plan, TIMING)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from conftest import make_session
 
-from mocap.analysis.discrepancy import (
+from mocap.analysis.discrepancy.workflow import (
     DiscrepancySettings,
     cv_base,
     cv_candidate,
@@ -33,10 +33,10 @@ from mocap.analysis.discrepancy import (
     prepare,
     run_discrepancy,
 )
-from mocap.analysis.face_model import make_effects
-from mocap.analysis.model_fit import coupling_kappa, travel_path
-from mocap.analysis.model_effects import BASE
-from mocap.discrepancy_input import load_measured
+from mocap.analysis.model.face_model import make_effects
+from mocap.analysis.model.fit import coupling_kappa, travel_path
+from mocap.analysis.model.effects import BASE
+from mocap.workflows.discrepancy.inputs import load_measured
 from mocap.simulate.effects import make_effect
 from mocap.simulate.truth import realised_coupling_kappa
 
@@ -172,7 +172,7 @@ def _truth_heldout_rms(root, data, models) -> tuple[float, dict]:
     measured take, as every family shifts each take at random)."""
     import pandas as pd
 
-    from mocap.analysis.model_fit import take_residual
+    from mocap.analysis.model.fit import take_residual
 
     names = list(data.marker_names)
     total, count, per = 0.0, 0, {}
@@ -269,7 +269,7 @@ def test_coupling_law_is_named_when_its_own_value_vanishes_on_all_takes(tmp_path
     plausibility check read that value and named nothing (held-out 10.5 x the noise floor);
     it reads kappa from the whole fit, as the folds do. Scored against the simulator's kappa
     (in travel: the law's own on straight paths)."""
-    from mocap.discrepancy_io import run
+    from mocap.workflows.discrepancy.results import run
     from mocap.simulate import preset, simulate
 
     cfg = preset("small", seed=4, labeled=True, n_markers=20, labeled_noise_mm=0.03,
@@ -294,7 +294,7 @@ def test_coupling_of_a_shape_the_model_has_no_law_for(tmp_path):
     paths, seed 2. Scored against the simulator's kappa and the noise floor: with the pair
     vectors of first order only (y_n y_n') the multi-DU takes were left at 1.47 x the noise floor
     (kappa -0.9 %); their second order (y_n^2 y_n', y_n y_n'^2) takes it to 1.30 x."""
-    from mocap.discrepancy_io import run
+    from mocap.workflows.discrepancy.results import run
     from mocap.simulate import preset, simulate
 
     cfg = preset("small", seed=2, labeled=True, n_markers=20, labeled_noise_mm=0.03,
@@ -315,7 +315,7 @@ def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
     """With workers (jobs > 1) the workflow fits the base on each fold and on all takes side by
     side in its pool, handed back while they fit (Futures: the candidates' screens start once
     the folds are done): the same model as fitted in this process."""
-    from mocap.analysis.discrepancy import _Runner, fit_base, fold_takes
+    from mocap.analysis.discrepancy.workflow import _Runner, fit_base, fold_takes
 
     root, _ = _session(tmp_path_factory, "pi-bow", "none")
     data = _prepared(root).data
@@ -342,8 +342,8 @@ def test_multi_du_take_shifts_are_the_faces_not_the_couplings(tmp_path):
     vectors, the smiles' shifts held the coupling (measured: 3.6 to 18.7 command units off the
     drawn ones, which are within +-3), and the alternation with the pair vectors did not bring
     them back. Fitted again from 0 as well, the better start kept (measured: within 2.3)."""
-    from mocap.analysis.model_effects import UniformCouplingLaw
-    from mocap.analysis.model_fit import fit_curves, multi_du_takes
+    from mocap.analysis.model.effects import UniformCouplingLaw
+    from mocap.analysis.model.fit import fit_curves, multi_du_takes
 
     root = make_session(tmp_path, seed=5, du_ids=(1, 7, 12), n_markers=10, n_trials=3,
                         labeled=True, labeled_noise_mm=0.03, motion_plans=("A", "C"),

@@ -21,7 +21,7 @@ def test_generic_top_level_names_are_not_installed(tmp_path):
 
 
 def test_subpackages_import_under_mocap(tmp_path):
-    r = _run("import mocap.calib.camera as c, mocap.analysis.face_model as f; "
+    r = _run("import mocap.calib.camera as c, mocap.analysis.model.face_model as f; "
              "print(c.__file__); print(f.__file__)", tmp_path)
     assert r.returncode == 0, r.stderr
     cam, face = r.stdout.split()

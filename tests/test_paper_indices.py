@@ -80,9 +80,9 @@ PAPER_COLUMNS = ["alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity"
 
 def analyse(trials, take, rejected=(), n_boot=0):
     """properties.csv's row for one synthetic take, through the pipeline's own steps."""
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
     from mocap.analysis.session_analysis import analyze_responses
-    from mocap.reconstruct.trials import average_trials
+    from mocap.reconstruction.trials import average_trials
 
     K, _, M, _ = trials.shape
     names = [f"m{i}" for i in range(M)]
@@ -127,7 +127,7 @@ def test_paper_columns_ignore_the_rest_recorded_after_the_schedule():
 
 
 def test_schedule_timing_from_the_command_rows():
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
 
     take = make_take(np.random.default_rng(0), n_markers=3, n_trials=1, lead_s=0.5)
     t, c = take.time_s, take.command
@@ -191,12 +191,12 @@ def corrected_errors(noisy, command_series, time_s, command, fps, gamma, lineari
     dyssynchrony's relative error) of noisy trials (K, n_frames, M, 3) mm against the recipe's
     noise-free values ``gamma`` and ``linearity``; the capture noise measured on the take's still
     frames (``command_series``, one command per frame); ``prior``: ``rest_prior``."""
-    from mocap.analysis.noise_corrected import (
+    from mocap.analysis.noise.corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
         corrected_linearity,
     )
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
 
     K, M = noisy.shape[0], noisy.shape[2]
     tm = schedule_timing(time_s, command)
@@ -266,7 +266,7 @@ def test_corrected_dyssynchrony_single_faces_with_the_sessions_rest(family, K, s
 def test_capture_noise_from_still_frames_ignores_trial_differences():
     """The noise covariance is measured within each trial on still frames: trial shifts and
     amplitudes (real motion) do not enter it."""
-    from mocap.analysis.noise_corrected import capture_noise_covariance
+    from mocap.analysis.noise.corrected import capture_noise_covariance
 
     rng = np.random.default_rng(8)
     take = make_take(rng, family="offchord", n_markers=12, n_trials=10)
@@ -285,7 +285,7 @@ def run_trials(run_dir, session_dir, du):
     """The run's labeled trials of one DU (K, n, M, 3) mm, its first take's command rows, and the
     marker names, read from the run's trajectories/ (the samples 3 or more cameras saw) and the
     session's command files."""
-    from mocap.session import load_session
+    from mocap.core.session import load_session
 
     session = load_session(session_dir)
     takes = sorted((t for t in session.takes_of_kind("response") if int(t.du) == du),
@@ -327,7 +327,7 @@ def test_session_corrected_indices_against_noise_free_truth(small_sim, small_run
     linearity and dyssynchrony against the paper's recipe (plain) on the simulator's noise-free
     positions of the same trials over the same markers; the literal columns on the measured
     data for contrast."""
-    from mocap.schedules import trapezoid
+    from mocap.core.schedules import trapezoid
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
     from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
@@ -362,7 +362,7 @@ def test_session_corrected_indices_against_noise_free_truth(small_sim, small_run
 def test_pooled_rest_reference_only_where_the_rests_agree():
     """The rest reference is pooled with the other takes' rest frames marker by marker, only where
     the two agree within their noise (a face that comes back elsewhere keeps its own rest)."""
-    from mocap.analysis.noise_corrected import pooled_rest
+    from mocap.analysis.noise.corrected import pooled_rest
 
     rng = np.random.default_rng(2)
     M, sd = 200, 0.03
@@ -388,7 +388,7 @@ def simulator_family_errors(family, K, sigma, noise_free, *, pooled):
     rest in 15 other takes of K trials x 6 frames (what the session analysis does), their mean
     carrying the same anisotropic noise. Returns the relative dyssynchrony errors, the linearity
     errors and the literal dyssynchrony's relative errors, one per face."""
-    from mocap.schedules import sample_commands, trapezoid
+    from mocap.core.schedules import sample_commands, trapezoid
     from mocap.simulate import preset
     from mocap.simulate.motion import true_positions
     from mocap.simulate.session_writer import RESPONSE_TAIL_S, take_rng, virtual_rig_and_face
@@ -452,12 +452,12 @@ def test_corrected_fits_against_the_recipe_on_noise_free_trials(family, K, sigma
     recipe on the noise-free trials: sensitivity within 5 %, betas within 2 command units, where
     the recipe on the noisy data is flattened (sensitivity 10-40 % low, betas several units
     off)."""
-    from mocap.analysis.noise_corrected import (
+    from mocap.analysis.noise.corrected import (
         capture_noise_covariance,
         corrected_dyssynchrony,
         corrected_fits,
     )
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
 
     err, lit = [], []
     for seed in range(8):
@@ -488,7 +488,7 @@ def test_variance_noise_sd_matches_simulated_spread_noise():
     (``at_zero_spread``) is the sd without a spread whatever the markers' true spread."""
     from scipy.ndimage import uniform_filter1d
 
-    from mocap.analysis.noise_corrected import variance_noise_sd
+    from mocap.analysis.noise.corrected import variance_noise_sd
 
     rng = np.random.default_rng(5)
     M, n, W = 30, 6000, 12
@@ -514,13 +514,13 @@ def test_delta_noise_variance_matches_the_realised_error_at_rest():
     3 trials at 0.05 mm: within 25 % for every size class (measured 0.91-1.21; with the path's
     gain at the smoothed p everywhere 0.73-1.02, with the gain at the frame's noisy p 1.10-1.46;
     without the path's slope at rest the prediction was 8-54 % low)."""
-    from mocap.analysis.noise_corrected import (
+    from mocap.analysis.noise.corrected import (
         box_mean,
         capture_noise_covariance,
         delta_noise_variance,
         path_chord,
     )
-    from mocap.analysis.paper_indices import schedule_timing
+    from mocap.analysis.paper.indices import schedule_timing
 
     err, pred, size = [], [], []
     for seed in range(12):
@@ -553,8 +553,8 @@ def test_delta_noise_variance_matches_the_realised_error_at_rest():
 def test_session_analysis_on_threads_equals_one_thread(small_sim, small_run):
     """analyze_session's DUs on two threads give the same tables as one at a time (each DU's
     bootstraps draw from their own seeded generator; the rows keep the DUs' order)."""
-    from mocap.pipeline import RunSettings, analyze_session
-    from mocap.session import load_session
+    from mocap.workflows.run.pipeline import RunSettings, analyze_session
+    from mocap.core.session import load_session
 
     session = load_session(small_sim / "session")
     one = analyze_session(session, small_run.reconstruction, small_run.trials, RunSettings(jobs=1))

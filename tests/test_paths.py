@@ -1,5 +1,5 @@
-"""Outputs never go into a raw session (mocap.paths) and manifest paths stay inside it
-(mocap.session): issue #19.
+"""Outputs never go into a raw session (mocap.core.paths) and manifest paths stay inside it
+(mocap.core.session): issue #19.
 
 Every writing command is driven through the CLI with an output path that is the session folder,
 lies inside it, contains it, or reaches it through a symbolic link; each must refuse with a
@@ -16,8 +16,8 @@ import pytest
 import session_builders as sb
 
 from mocap.cli import main
-from mocap.paths import OutputPathError, check_output_path, session_dir_of
-from mocap.session import SessionError, load_session
+from mocap.core.paths import OutputPathError, check_output_path, session_dir_of
+from mocap.core.session import SessionError, load_session
 
 
 def _fingerprint(root: Path) -> dict[str, str]:
@@ -143,7 +143,7 @@ def test_import_refuses_a_folder_holding_its_inputs(tmp_path, capsys):
 
 
 def test_the_library_run_refuses_too(session):
-    from mocap.pipeline import run_session
+    from mocap.workflows.run.pipeline import run_session
 
     before = _fingerprint(session.parent)
     with pytest.raises(SessionError, match="inside the session folder"):
@@ -220,7 +220,7 @@ def test_a_marker_template_linked_from_outside_is_refused(tmp_path):
 
 
 def test_simulate_replaces_only_a_simulated_session(tmp_path):
-    from mocap.commands.simulate import simulated
+    from mocap.cli.commands.simulate import simulated
 
     real = sb.session_3d("csv")
     real.manifest["name"] = "robot-face-day1"

@@ -12,8 +12,8 @@ import pytest
 from mocap.calib.calibration_file import read_calibration
 from mocap.calib.triangulation import triangulate
 from conftest import make_session
-from mocap.reconstruct.correspondence import reconstruct_points
-from mocap.reconstruct.labeling import identify_markers
+from mocap.reconstruction.correspondence import reconstruct_points
+from mocap.reconstruction.labeling import identify_markers
 
 
 def truth_dense(root, take, names):
@@ -119,7 +119,7 @@ def test_noise_floor_and_rejections(small_run, small_truth, small_sim):
     names = small_run.reconstruction.markers.names
     from dataclasses import replace
 
-    from mocap.reconstruct.trials import peak_displacement
+    from mocap.reconstruction.trials import peak_displacement
 
     for avg in small_run.averages:
         T = np.stack([truth_dense(small_sim, t, names) for t in avg.takes]).mean(axis=0)
@@ -165,7 +165,7 @@ def test_markers_named_in_reading_order_without_template(small_sim, small_run):
 
 
 def test_labeled_session_runs(tmp_path):
-    from mocap.pipeline import run_session
+    from mocap.workflows.run.pipeline import run_session
 
     root = make_session(tmp_path / "lab", du_ids=(4, 7), n_trials=2, n_markers=20,
                         motion_plans=(), battery=False, labeled=True, seed=4)
@@ -181,7 +181,7 @@ def test_worker_processes_give_the_in_process_result(tiny_sim, monkeypatch):
     """Takes reconstructed by spawned workers (forced here: the tiny session is below the size
     where workers pay, ``PARALLEL_MIN_BYTES``) equal the in-process reconstruction."""
     import mocap
-    import mocap.pipeline as pipeline
+    import mocap.workflows.run.pipeline as pipeline
 
     session = mocap.load_session(tiny_sim / "session")
     calibration = mocap.calibrate(session)
@@ -201,8 +201,8 @@ def test_a_damaged_take_stops_a_parallel_reconstruction_with_its_file_named(
     import shutil
 
     import mocap
-    import mocap.pipeline as pipeline
-    from mocap.session import SessionError
+    import mocap.workflows.run.pipeline as pipeline
+    from mocap.core.session import SessionError
 
     root = tmp_path / "session"
     shutil.copytree(tiny_sim / "session", root)

@@ -63,7 +63,7 @@ def test_recording_blob_colours_reflect_roles(small_run):
 
 
 def test_core_packages_do_not_import_rerun():
-    code = ("import sys, mocap.pipeline, mocap.audit, calib.wand_calibration, analysis.session_analysis;"
+    code = ("import sys, mocap.workflows.run.pipeline, mocap.workflows.audit, calib.wand_calibration, analysis.session_analysis;"
             "sys.exit(1 if 'rerun' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
@@ -112,7 +112,7 @@ def test_recording_written_beside_the_run_equals_one_written_after_it(small_run,
     """The run starts its recording when the takes are reconstructed and logs them on a thread
     while the trials and analyses go on; the file equals one written from the finished result
     in one go."""
-    from mocap.recording import write_recording
+    from mocap.outputs.recording import write_recording
 
     after = write_recording(tmp_path / "after.rrd", small_run)
     beside = _chunk_contents(small_run.out_dir / "session.rrd")
@@ -127,8 +127,8 @@ def _no_recording_left(out) -> None:
 
 def test_run_failing_after_the_reconstruction_leaves_no_recording(tiny_sim, tmp_path,
                                                                    monkeypatch):
-    import mocap.pipeline as pipeline
-    from mocap.run_outputs import WRITERS
+    import mocap.workflows.run.pipeline as pipeline
+    from mocap.outputs.run_writers import WRITERS
 
     def fail(*args, **kwargs):
         raise RuntimeError("analysis failed on purpose")
@@ -144,7 +144,7 @@ def test_run_failing_after_the_reconstruction_leaves_no_recording(tiny_sim, tmp_
 
 def test_failure_while_recording_the_takes_is_raised_and_a_rerun_only_records(
         tiny_sim, tmp_path, monkeypatch, capsys):
-    import mocap.recording as recording
+    import mocap.outputs.recording as recording
     from mocap.cli import main
 
     def full_disk(*args, **kwargs):

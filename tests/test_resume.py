@@ -19,7 +19,7 @@ import pytest
 
 from conftest import make_session
 from mocap.cli import main
-from mocap.run_lock import OutputInUse, RunLock
+from mocap.workflows.run.lock import OutputInUse, RunLock
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLES = ("properties.csv", "linearity.csv", "marker_properties.csv", "rejections.csv")
@@ -69,9 +69,9 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
     summary = json.loads((copy_of_run / "summary.json").read_text())
     assert summary["computed"] == [] and "audit" in summary["reused"]
     # the library call reads the reused results back, each take when asked for
-    from mocap.pipeline import RunSettings, run_session
-    from mocap.reconstruct.takes import LazyTakes
-    from mocap.run_outputs import WRITERS
+    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.reconstruction.takes import LazyTakes
+    from mocap.outputs.run_writers import WRITERS
 
     res = run_session(tiny_sim / "session", copy_of_run, settings=RunSettings(jobs=1, recording=False),
                       writers=WRITERS)
@@ -89,8 +89,8 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
 def test_a_rerun_that_adds_figures_does_not_reuse_stages_written_without(tiny_sim, copy_of_run):
     """The writers are part of the stage keys: a data-only library run recomputes the stages
     whose files differ (analyze, audit) and draws nothing; adding the writers back redraws."""
-    from mocap.pipeline import RunSettings, run_session
-    from mocap.run_outputs import WRITERS
+    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.outputs.run_writers import WRITERS
 
     settings = RunSettings(jobs=1, recording=False)
     shutil.rmtree(copy_of_run / "figures")
@@ -262,7 +262,7 @@ def test_lock_of_another_host_is_refused_with_advice(tmp_path):
 
 TRY_LOCK = r"""
 import sys, time
-from mocap.run_lock import OutputInUse, RunLock
+from mocap.workflows.run.lock import OutputInUse, RunLock
 start = float(sys.argv[2])
 while time.time() < start:
     time.sleep(0.001)
@@ -289,7 +289,7 @@ def test_files_hashed_ahead_on_threads_match_one_by_one(tmp_path):
     missing file to the per-file call, which reports it."""
     import hashlib
 
-    from mocap.run_cache import Fingerprints
+    from mocap.workflows.run.cache import Fingerprints
 
     rng = np.random.default_rng(0)
     files = []
@@ -320,7 +320,7 @@ def test_takes_read_back_are_loaded_once_when_threads_ask_together():
     from collections import Counter
     from concurrent.futures import ThreadPoolExecutor
 
-    from mocap.reconstruct.takes import LazyTakes
+    from mocap.reconstruction.takes import LazyTakes
 
     calls: Counter = Counter()
 
@@ -344,7 +344,7 @@ def test_takes_read_back_in_two_threads_do_not_wait_on_each_other():
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    from mocap.reconstruct.takes import LazyTakes
+    from mocap.reconstruction.takes import LazyTakes
 
     a_entered, b_started = threading.Event(), threading.Event()
 

@@ -29,7 +29,7 @@ from mocap.calib.interchange import (
 )
 from mocap.calib.wand_calibration import CalibrationError, calibrate_session
 from mocap.calib.world_frame import umeyama
-from mocap.session import load_session
+from mocap.core.session import load_session
 from mocap.simulate.rig import VOLUME_CENTER, VOLUME_HALF_MM
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "pyopenlpt_wand_4cam_blobs.csv"

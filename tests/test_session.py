@@ -1,4 +1,4 @@
-"""The session loader (mocap.session) against the input contract, FORMAT.md.
+"""The session loader (mocap.core.session) against the input contract, FORMAT.md.
 
 Bad-input tests each break exactly one thing of a tiny valid session (session_builders) and
 check the SessionError names the file and the row (CSV line, header = line 1) or manifest key.
@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import session_builders as sb
 
-from mocap.session import (
+from mocap.core.session import (
     Session,
     SessionError,
     SessionWarning,
@@ -154,7 +154,7 @@ def test_unknown_take_name(spec2d, tmp_path):
 def test_commands_read_once_per_session_each_call_a_copy(spec2d, tmp_path, monkeypatch):
     import pickle
 
-    import mocap.session as ms
+    import mocap.core.session as ms
 
     session = load(spec2d, tmp_path)
     reads = []

@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mocap.analysis.response import normalized_sigmoid
+from mocap.analysis.paper.response import normalized_sigmoid
 from mocap.calib.calibration_file import read_calibration
-from mocap.schedules import identification_battery, sample_commands, trapezoid
+from mocap.core.schedules import identification_battery, sample_commands, trapezoid
 from mocap.simulate import HiddenEffect
 from mocap.simulate.face import make_face
 from mocap.simulate.motion import normalized_response, true_positions

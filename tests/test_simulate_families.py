@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 from scipy.special import ndtr
 
-from mocap.schedules import trapezoid
+from mocap.core.schedules import trapezoid
 from mocap.simulate import SimConfig, simulate
 from mocap.simulate.effects import HiddenEffect
 from mocap.simulate.face import make_face
@@ -411,7 +411,7 @@ def _d(face, effect, rows, n_frames=606):
 
 
 def test_alt_lag_is_a_critically_damped_second_order():
-    from mocap.schedules import sample_commands
+    from mocap.core.schedules import sample_commands
 
     rows = pd.DataFrame({"time_s": [0.0], "du": [4], "command": [255]})
     t = np.arange(2000) / (FPS * 4)
@@ -425,7 +425,7 @@ def test_alt_lag_is_a_critically_damped_second_order():
 
 
 def test_alt_deadtime_is_a_distributed_delay_with_mean_l():
-    from mocap.schedules import sample_commands
+    from mocap.core.schedules import sample_commands
 
     rows = pd.DataFrame({"time_s": [0.0, 0.5], "du": [4, 4], "command": [0, 255]})
     t = np.arange(4800) / (FPS * 4)
@@ -453,7 +453,7 @@ def test_alt_backlash_sticks_then_slips_to_the_command():
 
 
 def test_alt_coupling_is_a_product_of_the_drives_at_every_marker(face):
-    from mocap.schedules import trapezoid as trap
+    from mocap.core.schedules import trapezoid as trap
 
     kappa = 0.35
     e = HiddenEffect("coupling", kappa, "alt")
@@ -470,7 +470,7 @@ def test_alt_coupling_is_a_product_of_the_drives_at_every_marker(face):
 def test_alt2_coupling_stiffens_with_the_square_of_the_other_drive(face):
     """The third coupling law (alt2): the other DU's drive enters squared, so half way up it
     costs a quarter of what it costs at full command; at full command kappa, as the alt form."""
-    from mocap.schedules import trapezoid as trap
+    from mocap.core.schedules import trapezoid as trap
 
     kappa = 0.35
     e = HiddenEffect("coupling", kappa, "alt2")
@@ -490,7 +490,7 @@ def test_alt2_coupling_stiffens_with_the_square_of_the_other_drive(face):
 
 
 def test_alt_saturation_compresses_each_du_before_the_sum(face):
-    from mocap.schedules import trapezoid as trap
+    from mocap.core.schedules import trapezoid as trap
 
     L = 2.0
     e = HiddenEffect("saturation", L, "alt")
@@ -505,8 +505,8 @@ def test_alt_saturation_compresses_each_du_before_the_sum(face):
 
 
 def test_alt_drift_moves_each_markers_bias_with_mean_k(face):
-    from mocap.schedules import sample_commands
-    from mocap.schedules import trapezoid as trap
+    from mocap.core.schedules import sample_commands
+    from mocap.core.schedules import trapezoid as trap
     from mocap.simulate.effects_alt import marker_drift_weights
 
     k = 4.0
@@ -522,7 +522,7 @@ def test_alt_drift_moves_each_markers_bias_with_mean_k(face):
 
 
 def test_alt_curvature_is_a_skewed_bow(face):
-    from mocap.schedules import trapezoid as trap
+    from mocap.core.schedules import trapezoid as trap
 
     kappa = 0.3
     d = _d(face, HiddenEffect("curvature", kappa, "alt"), trap(7))
@@ -553,7 +553,7 @@ def test_alt_effect_recorded_in_the_truth(tmp_path):
 
 # ---- layering: the truth is made without the analysis -----------------------------------------
 
-SIMULATOR_MAY_IMPORT = ("mocap.simulate", "mocap.schedules", "mocap.atomic", "mocap.session",
+SIMULATOR_MAY_IMPORT = ("mocap.simulate", "mocap.core.schedules", "mocap.core.atomic", "mocap.core.session",
                         "mocap.calib")
 
 
@@ -589,7 +589,7 @@ def test_simulating_a_session_loads_no_analysis_module(tmp_path):
             "labeled=True, motion_plans=('A',), face_family='preisach-bow', "
             "effect=make_effect('lag,coupling', form='alt')), sys.argv[1]); "
             "print(sorted(m for m in sys.modules if m.startswith(('mocap.analysis', "
-            "'mocap.reconstruct', 'mocap.pipeline'))))")
+            "'mocap.reconstruct', 'mocap.workflows.run.pipeline'))))")
     r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s")], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr

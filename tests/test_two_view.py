@@ -2,7 +2,7 @@
 
 With the default ``min_cameras`` (3) the shadowed nose bridge (``nose_bridge_cameras=2``) is in
 the trajectories with ``n_cameras`` 2 and its residual; the analyses never see those samples
-(one mask, ``mocap.reconstruct.camera_count``); the audit names the marker; the other markers are
+(one mask, ``mocap.reconstruction.camera_count``); the audit names the marker; the other markers are
 labeled as well against the simulator's truth as by the 3+-view points alone (what the
 reconstruction kept before 2-view points were accepted).
 """
@@ -17,10 +17,10 @@ import pandas as pd
 import pytest
 
 from conftest import make_session
-from mocap.pipeline import RunSettings, run_session
-from mocap.reconstruct.camera_count import below_min_cameras, usable_positions
-from mocap.reconstruct.correspondence import Points3D, reconstruct_points
-from mocap.reconstruct.labeling import LabeledTake, TakeStats, label_take
+from mocap.workflows.run.pipeline import RunSettings, run_session
+from mocap.reconstruction.camera_count import below_min_cameras, usable_positions
+from mocap.reconstruction.correspondence import Points3D, reconstruct_points
+from mocap.reconstruction.labeling import LabeledTake, TakeStats, label_take
 
 TAKE = "du04_t01"
 

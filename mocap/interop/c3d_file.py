@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.atomic import atomic_path
+from mocap.core.atomic import atomic_path
 from mocap.interop.marker_data import ImportError_, MarkerData, unique_names, unit_scale
 
 MODEL_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")

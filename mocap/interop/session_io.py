@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mocap.atomic import write_csv, write_text
+from mocap.core.atomic import write_csv, write_text
 from mocap.interop.c3d_file import read_c3d, write_c3d
 from mocap.interop.marker_data import ImportError_, MarkerData, unique_names
 from mocap.interop.vendor_text import sniff
@@ -214,7 +214,7 @@ def export_c3d(source: str | os.PathLike, dest: str | os.PathLike, takes=None) -
     session with a single DU gets a single channel, which ezc3d stores as scalar parameters: the
     ``c3d`` package then cannot read its analog data (ezc3d and the vendors' tools can).
     """
-    from mocap.session import command_matrix, load_session
+    from mocap.core.session import command_matrix, load_session
 
     source = Path(source)
     if (source / "summary.json").is_file():

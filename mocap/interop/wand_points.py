@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mocap.atomic import write_csv, write_text
+from mocap.core.atomic import write_csv, write_text
 from mocap.interop.marker_data import ImportError_
 
 XYPTS = re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mocap.schedules import sample_commands
+from mocap.core.schedules import sample_commands
 from mocap.simulate.effects import HiddenEffect
 from mocap.simulate.face import (
     SKIN_JITTER_MM,

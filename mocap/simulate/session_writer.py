@@ -12,7 +12,7 @@
 - ``face.parquet``: per DU and marker the true peak displacement vector and response parameters;
 - ``properties.csv`` (written by ``mocap simulate``, not by :func:`simulate`): the paper's
   indices of the true face per DU, defined as the estimator defines them
-  (``mocap.truth_properties``, which lives above the analysis: the simulator imports nothing
+  (``mocap.workflows.truth_properties``, which lives above the analysis: the simulator imports nothing
   from it);
 - ``truth.json``: the configuration, seed, face family (``face_family``: the family drawn when
   the configuration asked for ``random``, with its settings), hidden effect and its equation's
@@ -42,8 +42,8 @@ import pandas as pd
 
 from mocap.calib.calibration_file import write_calibration
 from mocap import __version__
-from mocap.atomic import write_csv, write_parquet, write_text
-from mocap.schedules import identification_battery, trapezoid
+from mocap.core.atomic import write_csv, write_parquet, write_text
+from mocap.core.schedules import identification_battery, trapezoid
 from mocap.simulate.capture import observe
 from mocap.simulate.config import SimConfig
 from mocap.simulate.dus import DU_BY_ID

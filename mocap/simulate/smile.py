@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mocap.schedules import round_half_up
+from mocap.core.schedules import round_half_up
 from mocap.simulate.dus import DU_BY_ID
 
 PLAN_NAMES = ("A", "B", "C", "D", "E")

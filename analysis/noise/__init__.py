@@ -1,0 +1,1 @@
+"""Noise-corrected estimates of the paper's indices: what its recipe gives on noise-free positions."""

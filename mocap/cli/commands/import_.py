@@ -1,0 +1,123 @@
+"""``mocap import``: vendors' exports to a labeled session."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+DESCRIPTION = """\
+Turn C3D files, OptiTrack Motive CSV exports, Qualisys QTM TSV 3D exports and Vicon Nexus CSV
+exports into a labeled session (docs/format.md, 3D takes), one take per file. Commands come from C3D
+analog channels named DU<n> or from --commands (one file only). The manifest is written for you
+to complete (take kinds, DU names); every repair made on the way (units converted, duplicate
+labels renamed, rigid bodies ignored, missing frames filled as gaps) is listed in
+import_report.json and printed.
+
+Other labs' wand recordings become a session of unlabeled 2D blobs with one wand take, ready
+for 'mocap calibrate' (no ground square: the world frame is the first camera's): per-blob
+tables (frame, camera, x, y[, status, radius]: e.g. pyOpenLPT's wand points, whose Raw rows
+are taken) and DLTdv/easyWand/Argus xypts.csv files (bottom-left origin, NaN when unseen) with
+an Argus/easyWand camera profile or --image-size. --wand-offsets is required for them.
+
+examples:
+  mocap import trial01.c3d trial02.c3d --out sessions/robot1
+  mocap import take.csv --fps 120 --commands take_commands.csv --out sessions/motive1
+  mocap import wand_points.csv --wand-offsets 0,660 --image-size 1280x800 --out sessions/lab_wand
+  mocap import wand_xypts.csv --profile profile.txt --wand-offsets 0,660 --fps 100 --out s2
+"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("files", type=Path, nargs="+", help=".c3d, Motive/Vicon .csv or QTM .tsv files")
+    p.add_argument("--out", type=Path, required=True, help="new session folder")
+    p.add_argument("--commands", type=Path, default=None, help="command CSV for a single file")
+    p.add_argument("--fps", type=float, default=None, help="frame rate, where a file lacks it")
+    p.add_argument("--wand-offsets", default=None,
+                   help="wand recordings: marker offsets along the wand, mm (e.g. 0,660)")
+    p.add_argument("--image-size", default=None,
+                   help="wand recordings: every camera's image size WIDTHxHEIGHT, px")
+    p.add_argument("--profile", type=Path, default=None,
+                   help="wand recordings: Argus/easyWand camera profile (focal, size per camera)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from mocap.interop.marker_data import ImportError_
+    from mocap.interop.session_io import import_files
+    from mocap.interop.wand_points import is_blob_table, is_xypts
+    from mocap.core.paths import OutputPathError, check_output_path
+
+    try:
+        check_output_path(args.out, inputs=[*args.files, *([args.commands] if args.commands else [])])
+    except OutputPathError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if len(args.files) == 1 and (is_blob_table(args.files[0]) or is_xypts(args.files[0])):
+        try:
+            return _import_wand(args)
+        except ImportError_ as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+    try:
+        report = import_files(args.files, args.out, commands=args.commands, fps=args.fps)
+    except ImportError_ as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(f"session written to {report['session']}: {len(report['takes'])} takes, "
+          f"{len(report['markers'])} markers at {report['fps']:g} Hz, DUs {report['dus']}")
+    for n in report["notes"]:
+        print(f"  note: {n}")
+    print("to complete in session.toml:")
+    for t in report["to_complete"]:
+        print(f"  - {t}")
+    return 0
+
+
+def _import_wand(args: argparse.Namespace) -> int:
+    from mocap.interop.marker_data import ImportError_
+    from mocap.interop.wand_points import (
+        CameraProfile,
+        is_xypts,
+        read_blob_table,
+        read_camera_profile,
+        read_xypts,
+        write_wand_session,
+    )
+
+    path = args.files[0]
+    if not args.wand_offsets:
+        raise ImportError_(f"{path}: a wand recording needs --wand-offsets (mm along the wand)")
+    try:
+        offsets = [float(v) for v in args.wand_offsets.split(",")]
+    except ValueError:
+        raise ImportError_(f"--wand-offsets: expected numbers like 0,660; got {args.wand_offsets!r}") from None
+    size = None
+    if args.image_size:
+        try:
+            w, h = (int(v) for v in args.image_size.lower().split("x"))
+            size = (w, h)
+        except ValueError:
+            raise ImportError_(f"--image-size: expected WIDTHxHEIGHT, got {args.image_size!r}") from None
+    profile = read_camera_profile(args.profile) if args.profile else None
+    if is_xypts(path):
+        if profile is None and size is None:
+            raise ImportError_(f"{path}: DLTdv points need each camera's image height: give "
+                               "--profile or --image-size")
+        import pandas as pd
+
+        n_cams = len({c.split("_")[1] for c in pd.read_csv(path, nrows=0).columns})
+        cams = profile or [CameraProfile(f"cam{i + 1}", *size) for i in range(n_cams)]
+        blobs = read_xypts(path, {c.id: c.height for c in cams})
+    else:
+        blobs = read_blob_table(path)
+        if profile is None and size is None:
+            raise ImportError_(f"{path}: give the cameras' image size (--image-size or --profile)")
+        cams = profile or [CameraProfile(c, *size) for c in sorted(blobs["camera"].unique())]
+    root = write_wand_session(args.out, blobs, cams, offsets, fps=args.fps or 100.0,
+                              name=path.stem, source=str(path))
+    print(f"session written to {root}: one wand take of {len(blobs)} blobs from "
+          f"{len(cams)} cameras ({', '.join(c.id for c in cams)}); no ground square, so "
+          "'mocap calibrate' puts the world frame at the first camera")
+    if not args.fps:
+        print("  note: no --fps given; 100 Hz assumed (only timing depends on it)")
+    return 0

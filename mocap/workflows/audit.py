@@ -1,0 +1,191 @@
+"""The capture-quality audit: is this capture good enough to trust an analysis?
+
+Items and their verdicts (pass / warn / fail), thresholds in ``THRESHOLDS`` (documented here and
+written into audit.json):
+
+- calibration: the calibration's rating (excellent or good: pass, poor: fail; commercial
+  systems call "good" usable);
+- per camera (raw sessions): its wand reprojection RMS (px); ghost rate, the share of its blobs
+  that ended in no labeled marker (reflections, noise); dropout rate, the share of frames in
+  which it missed a marker it normally sees (it contributes to at least half of that marker's
+  reconstructed frames), over all face takes;
+- per marker: cameras that see it (those contributing to at least half its frames; fewer than
+  the reconstruction's minimum, ``min_cameras`` as the run was given, fails), gaps (count, longest, and the share of face-take frames missing), noise floor
+  (rest take, per-axis sd; warn above 2x and fail above 4x the markers' median), across-trial
+  spread (fail when rejected for abnormal spread);
+- rejections: every marker and trajectory left out, with its reason;
+- missing markers: a template marker (markers.csv) that was never reconstructed fails by name
+  (no camera pair sees it, or it fell off).
+
+The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
+bad markers are left out by the rejections; a failing calibration or camera condemns the capture).
+
+Pure computation in ``audit_capture``; ``write_audit`` writes audit.json and audit.md; the two
+figures (visibility per marker and camera; noise floor per marker on the face) are drawn by
+``mocap.outputs.figures.audit_figures`` (the outputs layer).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mocap.core.atomic import write_text
+from mocap.reconstruction.trials import marker_spread
+
+THRESHOLDS = {
+    "camera_reprojection_rms_px": {"warn": 0.2, "fail": 0.4},
+    "camera_ghost_rate": {"warn": 0.08, "fail": 0.2},
+    "camera_dropout_rate": {"warn": 0.05, "fail": 0.15},
+    "marker_missing_fraction": {"warn": 0.05, "fail": 0.2},
+    "marker_noise_vs_median": {"warn": 2.0, "fail": 4.0},
+}
+ORDER = {"pass": 0, "warn": 1, "fail": 2}
+
+
+def _verdict(value: float, th: dict) -> str:
+    if not np.isfinite(value):
+        return "warn"
+    return "fail" if value > th["fail"] else "warn" if value > th["warn"] else "pass"
+
+
+def audit_capture(session_name: str, calibration, reconstruction, averages, rejections,
+                  *, min_cameras: int = 3) -> dict:
+    """The audit of a run as a JSON-ready dict.
+
+    calibration : ``mocap.calib.wand_calibration.CalibrationResult`` (raw sessions) or None;
+    reconstruction : ``mocap.reconstruction.takes.Reconstruction``; averages : the DUs'
+    ``TrialAverage``; rejections : the rejections table; min_cameras : the cameras a 3D point
+    needed in the reconstruction (a marker seen by fewer fails).
+    """
+    recon = reconstruction
+    names = list(recon.markers.names)
+    cap = recon.capture
+    items = []
+    report: dict = {"thresholds": THRESHOLDS, "session": session_name, "min_cameras": min_cameras}
+    if calibration is not None:
+        q = calibration.quality
+        rating = q.get("rating", "poor")
+        v = {"excellent": "pass", "good": "pass"}.get(rating, "fail")
+        report["calibration"] = {"rating": rating, "verdict": v,
+                                 "reprojection_rms_px": q.get("reprojection_rms_px"),
+                                 "wand_length_error_mean_mm": q.get("wand_length_error_mean_mm"),
+                                 "wand_length_error_sd_mm": q.get("wand_length_error_sd_mm")}
+        items.append(("calibration", "calibration", v, f"rating {rating}"))
+        cams = []
+        ids = list(calibration.rig.ids)
+        views = cap.views
+        mf = np.maximum(cap.marker_frames, 1)
+        sees = views >= 0.5 * mf[None]
+        for i, cid in enumerate(ids):
+            blobs = int(cap.camera_blobs[i])
+            ghost = 1.0 - cap.camera_labeled_blobs[i] / max(blobs, 1)
+            expected = mf[sees[i]].sum()
+            dropout = 1.0 - views[i][sees[i]].sum() / max(expected, 1)
+            rms = float(q["reprojection_rms_px"].get(cid, np.nan))
+            verdicts = {"reprojection_rms_px": _verdict(rms, THRESHOLDS["camera_reprojection_rms_px"]),
+                        "ghost_rate": _verdict(ghost, THRESHOLDS["camera_ghost_rate"]),
+                        "dropout_rate": _verdict(dropout, THRESHOLDS["camera_dropout_rate"])}
+            worst = max(verdicts.values(), key=ORDER.get)
+            cams.append({"camera": cid, "blobs": blobs, "ghost_rate": float(ghost),
+                         "dropout_rate": float(dropout), "reprojection_rms_px": rms,
+                         "markers_seen": int(sees[i].sum()), "verdicts": verdicts, "verdict": worst})
+            items.append(("camera", cid, worst, ", ".join(f"{k} {w}" for k, w in verdicts.items()
+                                                          if w != "pass") or "ok"))
+        report["cameras"] = cams
+    # markers
+    noise = recon.noise_per_marker_mm
+    noise_m = np.sqrt(np.nanmean(noise**2, axis=1)) if noise is not None else np.full(len(names), np.nan)
+    med_noise = float(np.nanmedian(noise_m)) if np.isfinite(noise_m).any() else np.nan
+    rej = rejections if rejections is not None else pd.DataFrame(columns=["du", "marker", "reason"])
+    spread_bad = set(rej.loc[rej["reason"] == "abnormal_spread", "marker"])
+    spread_m = marker_spread(list(averages)) if averages else np.full(len(names), np.nan)
+    frames = max(int(cap.frames), 1)
+    markers = []
+    for m, name in enumerate(names):
+        missing = 1.0 - cap.marker_frames[m] / frames
+        n_cam = None
+        verdicts = {"missing": _verdict(missing, THRESHOLDS["marker_missing_fraction"])}
+        if cap.views is not None:
+            v = cap.views[:, m]
+            n_cam = int(np.sum(v >= 0.5 * max(cap.marker_frames[m], 1)))
+            verdicts["cameras"] = "fail" if n_cam < min_cameras else "pass"
+        ratio = noise_m[m] / med_noise if np.isfinite(med_noise) and med_noise > 0 else np.nan
+        verdicts["noise"] = _verdict(ratio, THRESHOLDS["marker_noise_vs_median"]) if np.isfinite(ratio) else "pass"
+        verdicts["spread"] = "fail" if name in spread_bad else "pass"
+        worst = max(verdicts.values(), key=ORDER.get)
+        markers.append({"marker": name, "cameras": n_cam, "gaps": int(cap.gaps[m]),
+                        "longest_gap_frames": int(cap.longest_gap[m]),
+                        "missing_fraction": float(missing), "noise_floor_mm": float(noise_m[m]),
+                        "across_trial_spread_mm": float(spread_m[m]), "verdicts": verdicts,
+                        "verdict": worst})
+        if worst != "pass":
+            items.append(("marker", name, worst, ", ".join(f"{k} {w}" for k, w in verdicts.items()
+                                                           if w != "pass")))
+    report["markers"] = markers
+    missing = list(getattr(recon.markers, "missing_from_template", ()))
+    report["missing_markers"] = missing
+    for name in missing:
+        items.append(("marker", name, "fail", "never reconstructed (in markers.csv, not found in "
+                      "the rest take: no camera pair sees it, or it fell off)"))
+    report["min_cameras"] = int(min_cameras)
+    report["noise_floor_mm"] = recon.noise_floor_mm
+    report["rejections"] = [{"du": (None if pd.isna(r.du) else int(r.du)), "marker": r.marker,
+                             "reason": r.reason, "value": float(r.value),
+                             "threshold": float(r.threshold)} for r in rej.itertuples()]
+    report["flagged"] = [{"kind": k, "item": i, "verdict": v, "why": w} for k, i, v, w in items
+                         if v != "pass"]
+    # a few bad markers are left out by the rejections and do not condemn the capture: they
+    # bring the overall verdict to "warn" at most; calibration and cameras can fail it
+    overall = [v if k != "marker" else min(v, "warn", key=ORDER.get) for k, _, v, _ in items]
+    report["verdict"] = max(overall + ["pass"], key=ORDER.get)
+    return report
+
+
+def _markdown(a: dict) -> str:
+    lines = [f"# Capture audit: {a['session']}", "", f"Overall verdict: **{a['verdict']}**", ""]
+    if a["flagged"]:
+        lines += ["## Flagged", "", "| kind | item | verdict | why |", "|---|---|---|---|"]
+        lines += [f"| {f['kind']} | {f['item']} | {f['verdict']} | {f['why']} |" for f in a["flagged"]]
+        lines.append("")
+    if "calibration" in a:
+        c = a["calibration"]
+        lines += ["## Calibration", "", f"Rating {c['rating']} ({c['verdict']}); wand length error "
+                  f"{c['wand_length_error_mean_mm']:+.4f} +- {c['wand_length_error_sd_mm']:.4f} mm.", ""]
+    if "cameras" in a:
+        lines += ["## Cameras", "", "| camera | blobs | ghost rate | dropout rate | reprojection RMS (px) | verdict |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {c['camera']} | {c['blobs']} | {c['ghost_rate']:.3f} | {c['dropout_rate']:.3f} | "
+                  f"{c['reprojection_rms_px']:.3f} | {c['verdict']} |" for c in a["cameras"]]
+        lines.append("")
+    lines += ["## Markers", "", f"Noise floor (session mean, per axis): {a['noise_floor_mm']:.4f} mm." if a["noise_floor_mm"] else "", "",
+              "| marker | cameras | gaps | longest gap (frames) | missing | noise (mm) | spread (mm) | verdict |",
+              "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {m['marker']} | {m['cameras']} | {m['gaps']} | {m['longest_gap_frames']} | "
+              f"{m['missing_fraction']:.3f} | {m['noise_floor_mm']:.4f} | {m['across_trial_spread_mm']:.4f} | "
+              f"{m['verdict']} |" for m in a["markers"]]
+    if a.get("missing_markers"):
+        lines += ["", "## Missing markers", "", "In markers.csv, never reconstructed: "
+                  + ", ".join(a["missing_markers"]) + "."]
+    lines += ["", "## Rejections", ""]
+    if a["rejections"]:
+        lines += ["| DU | marker | reason | value | threshold |", "|---|---|---|---|---|"]
+        lines += [f"| {r['du'] if r['du'] is not None else 'all'} | {r['marker']} | {r['reason']} | "
+                  f"{r['value']:.4g} | {r['threshold']:.4g} |" for r in a["rejections"]]
+    else:
+        lines.append("None.")
+    lines += ["", "## Thresholds", "", "```json", json.dumps(a["thresholds"], indent=1), "```", ""]
+    return "\n".join(lines)
+
+
+def write_audit(out: Path, audit: dict) -> list[Path]:
+    """Write audit.json and audit.md into ``out``; return the files.
+
+    The audit's figures are drawn by the outputs layer
+    (:func:`mocap.outputs.figures.audit_figures`): a workflow returns data.
+    """
+    return [write_text(out / "audit.json", json.dumps(audit, indent=2, default=float)),
+            write_text(out / "audit.md", _markdown(audit))]

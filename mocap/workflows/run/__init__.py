@@ -1,0 +1,1 @@
+"""`mocap run`: its settings, stages, composer, stored stage results and lock."""
