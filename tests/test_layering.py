@@ -229,7 +229,7 @@ def test_function_local_and_relative_imports_are_seen(tmp_path):
 
 
 def test_import_mocap_pulls_in_no_heavy_package():
-    code = ("import sys, mocap, mocap.core.session, mocap.calib, mocap.analysis, mocap.reconstruct; "
+    code = ("import sys, mocap, mocap.core.session, mocap.calib, mocap.analysis, mocap.reconstruction; "
             "print(sorted(m for m in ('rerun', 'matplotlib', 'dask') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
