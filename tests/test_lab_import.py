@@ -358,3 +358,34 @@ def test_an_unanalysable_session_warns_on_stderr_in_the_summary_and_the_audit(la
     # 'mocap audit' says the same
     assert main(["audit", str(tmp_path / "S"), "--out", str(tmp_path / "audit")]) == 0
     assert "warning: nothing to analyse" in capsys.readouterr().err
+
+
+def test_a_table_alone_names_the_files(small_lab, tmp_path):
+    table = small_lab / "takes.csv"
+    table.write_text("file,name,du,trial\nsmile_rest.c3d,rest,,\n"
+                     "smile_DU1_trial1.c3d,du1_t1,1,1\nsmile_DU2_trial1.c3d,du2_t1,2,1\n")
+    assert main(["import", "--takes", str(table), "--commands", str(small_lab / "commands"),
+                 "--out", str(tmp_path / "S")]) == 0
+    report = json.loads((tmp_path / "S" / "import_report.json").read_text())
+    assert [(t["name"], t["kind"], t.get("du")) for t in report["takes"]] == [
+        ("rest", "rest", None), ("du1_t1", "response", 1), ("du2_t1", "response", 2)]
+    # kinds the table left empty are guesses, listed with the line that left them
+    assert any("takes.csv line 3: take 'du1_t1' kind 'response' (it names a DU)" in g
+               for g in report["guessed"])
+    assert main(["validate", str(tmp_path / "S")]) == 0
+
+
+@pytest.mark.parametrize("log", ["smile_DU1_trial1_commands.csv", "SMILE_DU1_TRIAL1-cmd.csv",
+                                 "smile_DU1_trial1.csv", "du1_t1 log.csv"])
+def test_command_logs_are_matched_in_the_spellings_labs_use(tmp_path, log):
+    from mocap.interop.take_table import plan_takes
+
+    (tmp_path / "smile_DU1_trial1.c3d").write_bytes(b"")
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / log).write_text("time_s,du,command\n0.0,1,0\n")
+    (tmp_path / "logs" / "catalog.csv").write_text("time_s,du,command\n0.0,1,0\n")
+    (tmp_path / "t.csv").write_text("file,name\nsmile_DU1_trial1.c3d,du1_t1\n")
+    plan = plan_takes([tmp_path / "smile_DU1_trial1.c3d"], table=tmp_path / "t.csv",
+                      commands_dir=tmp_path / "logs")
+    assert plan.takes[0].commands == tmp_path / "logs" / log
+    assert any("catalog.csv" in n for n in plan.notes)  # matches no take: noted, not imported
