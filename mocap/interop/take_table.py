@@ -40,7 +40,7 @@ TABLE_COLUMNS = ("file", "name", "kind", "du", "trial", "plan", "commands", "com
 DU_TABLE_COLUMNS = ("du", "name", "feedback")
 NAMED_KINDS = ("rest", "wand", "ground")
 _NAMED = re.compile(r"(?:^|[^a-z])(rest|wand|ground)(?=[^a-z]|$)")
-_LOG_SUFFIX = re.compile(r"[_\-. ]*(commands?|cmds?|command_log|commands_log|log)$", re.IGNORECASE)
+_LOG_SUFFIX = re.compile(r"[_\-. ]+(commands?|cmds?|log)$", re.IGNORECASE)
 _FIELD = re.compile(r"\{(\w*)\}|\*")
 _FIELDS = {"du": r"(?P<du>\d+)", "trial": r"(?P<trial>\d+)", "plan": r"(?P<plan>[A-Za-z0-9]+)"}
 
