@@ -282,10 +282,11 @@ def test_errors_name_the_file_or_the_row(small_lab, tmp_path, capsys):
     table.write_text("file,kind\nsmile_rest.c3d,rest\nsmile_DU9_trial1.c3d,motion\n")
     err = _import_error(capsys, lab / "smile_rest.c3d", "--takes", table, "--out", out)
     assert "t1.csv line 3: file 'smile_DU9_trial1.c3d' is not among the files given" in err
-    # a duplicate take name
-    table.write_text("file,name\nsmile_rest.c3d,a\nsmile_DU1_trial1.c3d,b\nsmile_DU2_trial1.c3d,A\n")
+    # a duplicate take name (a blank line and a column of the lab's own counted and ignored)
+    table.write_text("file,name,notes\nsmile_rest.c3d,a,x\n\nsmile_DU1_trial1.c3d,b,\n"
+                     "smile_DU2_trial1.c3d,A,y\n")
     err = _import_error(capsys, *c3ds, "--takes", table, "--out", out)
-    assert "t1.csv line 4: take name 'A' already used on line 2" in err
+    assert "t1.csv line 5: take name 'A' already used on line 2" in err
     # an unknown kind
     table.write_text("file,kind\nsmile_rest.c3d,resting\n")
     err = _import_error(capsys, lab / "smile_rest.c3d", "--takes", table, "--out", out)
@@ -362,8 +363,8 @@ def test_an_unanalysable_session_warns_on_stderr_in_the_summary_and_the_audit(la
 
 def test_a_table_alone_names_the_files(small_lab, tmp_path):
     table = small_lab / "takes.csv"
-    table.write_text("file,name,du,trial\nsmile_rest.c3d,rest,,\n"
-                     "smile_DU1_trial1.c3d,du1_t1,1,1\nsmile_DU2_trial1.c3d,du2_t1,2,1\n")
+    table.write_text("file,name,du,trial,commands_offset_s\nsmile_rest.c3d,rest,,,\n"
+                     "smile_DU1_trial1.c3d,du1_t1,1,1,0.25\nsmile_DU2_trial1.c3d,du2_t1,2,1,\n")
     assert main(["import", "--takes", str(table), "--commands", str(small_lab / "commands"),
                  "--out", str(tmp_path / "S")]) == 0
     report = json.loads((tmp_path / "S" / "import_report.json").read_text())
@@ -372,7 +373,12 @@ def test_a_table_alone_names_the_files(small_lab, tmp_path):
     # kinds the table left empty are guesses, listed with the line that left them
     assert any("takes.csv line 3: take 'du1_t1' kind 'response' (it names a DU)" in g
                for g in report["guessed"])
+    # the offset is the manifest's, copied for the take that has one
+    manifest = (tmp_path / "S" / "session.toml").read_text()
+    assert manifest.count("commands_offset_s = 0.25") == 1
     assert main(["validate", str(tmp_path / "S")]) == 0
+    table.write_text("file,commands_offset_s\nsmile_rest.c3d,soon\n")
+    assert main(["import", "--takes", str(table), "--out", str(tmp_path / "S2")]) == 1
 
 
 @pytest.mark.parametrize("log", ["smile_DU1_trial1_commands.csv", "SMILE_DU1_TRIAL1-cmd.csv",

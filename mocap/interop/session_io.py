@@ -169,10 +169,10 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         raise ImportError_(f"{out}: already holds a session; choose a new folder")
     planning = _plan(files, commands, takes, patterns)
     guessed = list(planning.guessed)
-    du_table = read_du_table(dus) if dus is not None else None
+    notes: list[str] = list(planning.notes)
+    du_table = read_du_table(dus, notes) if dus is not None else None
     plans = list(planning.takes)
     datas = [read_any(t.source, fps) for t in plans]
-    notes: list[str] = list(planning.notes)
     for k, (t, d) in enumerate(zip(plans, datas)):
         safe = _csv_safe(d.names, str(t.source), notes)
         if safe != d.names:

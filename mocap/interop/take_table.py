@@ -92,10 +92,12 @@ class DUEntry:
 
 # --- reading small CSV tables ---------------------------------------------------------------
 
-def _read_table(path: Path, columns: tuple[str, ...], required: tuple[str, ...], what: str
-                ) -> pd.DataFrame:
+def _read_table(path: Path, columns: tuple[str, ...], required: tuple[str, ...], what: str,
+                notes: list[str]) -> list[tuple[int, dict[str, str]]]:
+    """The rows of a small CSV table as (line number, {column: stripped text}); blank lines
+    skipped, columns it does not know noted and ignored."""
     try:
-        t = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        t = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False)
     except FileNotFoundError:
         raise ImportError_(f"{path}: no such {what}") from None
     except (OSError, ValueError, UnicodeDecodeError, pd.errors.ParserError) as e:
@@ -103,15 +105,18 @@ def _read_table(path: Path, columns: tuple[str, ...], required: tuple[str, ...],
     t.columns = [str(c).strip().lower() for c in t.columns]
     unknown = [c for c in t.columns if c not in columns]
     if unknown:
-        raise ImportError_(f"{path} line 1: unknown column(s) {unknown}; a {what} has the columns "
-                           f"{', '.join(columns)}")
+        notes.append(f"{path}: column(s) {unknown} ignored (a {what} has the columns "
+                     f"{', '.join(columns)})")
     missing = [c for c in required if c not in t.columns]
     if missing:
         raise ImportError_(f"{path} line 1: missing column(s) {missing} (a {what} needs "
                            f"{', '.join(required)})")
-    if t.empty:
+    rows = [(i + 2, {c: "" if pd.isna(v) else str(v).strip() for c, v in r.items() if c in columns})
+            for i, r in enumerate(t.to_dict("records"))]
+    rows = [(n, r) for n, r in rows if any(r.values())]
+    if not rows:
         raise ImportError_(f"{path}: no rows below the header")
-    return t.apply(lambda c: c.str.strip())
+    return rows
 
 
 def _int_cell(value: str, where: str, col: str, minimum: int) -> int | None:
@@ -126,14 +131,15 @@ def _int_cell(value: str, where: str, col: str, minimum: int) -> int | None:
     return int(f)
 
 
-def read_du_table(path: str | Path) -> dict[int, DUEntry]:
+def read_du_table(path: str | Path, notes: list[str] | None = None) -> dict[int, DUEntry]:
     """A DU table (CSV ``du,name[,feedback]``): DU id -> :class:`DUEntry`; ``feedback`` true/false,
-    1/0 or yes/no, false when absent. Errors name the line."""
+    1/0 or yes/no, false when absent. Errors name the line; ignored columns are noted."""
     path = Path(path)
-    t = _read_table(path, DU_TABLE_COLUMNS, ("du", "name"), "DU table")
+    rows = _read_table(path, DU_TABLE_COLUMNS, ("du", "name"), "DU table",
+                       notes if notes is not None else [])
     out: dict[int, DUEntry] = {}
-    for i, row in enumerate(t.to_dict("records")):
-        where = f"{path} line {i + 2}"
+    for line, row in rows:
+        where = f"{path} line {line}"
         du = _int_cell(row["du"], where, "du", 0)
         if du is None:
             raise ImportError_(f"{where}: empty du; expected an integer DU id")
@@ -326,23 +332,24 @@ def _table_file(value: str, table: Path, files: list[Path], where: str) -> Path:
     return hit[0]
 
 
-def _from_table(files: list[Path], table: Path, guessed: list[str]) -> list[TakePlan]:
-    t = _read_table(table, TABLE_COLUMNS, ("file",), "take table")
+def _from_table(files: list[Path], table: Path, guessed: list[str], notes: list[str]
+                ) -> list[TakePlan]:
+    rows = _read_table(table, TABLE_COLUMNS, ("file",), "take table", notes)
     takes: list[TakePlan] = []
     names: dict[str, str] = {}
     sources: dict[Path, str] = {}
-    for i, row in enumerate(t.to_dict("records")):
-        where = f"{table} line {i + 2}"
+    for line, row in rows:
+        where = f"{table} line {line}"
         src = _table_file(row["file"], table, files, where)
         key = src.resolve()
         if key in sources:
             raise ImportError_(f"{where}: file {row['file']!r} already described on {sources[key]}")
-        sources[key] = f"line {i + 2}"
+        sources[key] = f"line {line}"
         name = row.get("name", "") or _take_name(src.stem)
         if name.lower() in names:
             raise ImportError_(f"{where}: take name {name!r} already used on {names[name.lower()]}; "
                                "take names must be unique")
-        names[name.lower()] = f"line {i + 2}"
+        names[name.lower()] = f"line {line}"
         du = _int_cell(row.get("du", ""), where, "du", 0)
         trial = _int_cell(row.get("trial", ""), where, "trial", 1)
         kind = row.get("kind", "").lower()
@@ -406,7 +413,7 @@ def plan_takes(files, *, table: str | Path | None = None, patterns=(),
             raise ImportError_(f"{f}: given twice (also as {seen[f.resolve()]})")
         seen[f.resolve()] = f
     if table is not None:
-        takes = _from_table(motion, Path(table), guessed)
+        takes = _from_table(motion, Path(table), guessed, notes)
     else:
         if not motion:
             raise ImportError_("no files to import: give the takes' files (or a take table)")
