@@ -10,6 +10,7 @@ run of the same numbers given as a session written by hand in the documented for
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -323,12 +324,28 @@ def test_kind_from_name(stem, kind):
     assert kind_from_name(stem) == kind
 
 
+def test_a_name_with_two_kinds_is_an_error_naming_the_file(tmp_path):
+    from mocap.interop.marker_data import ImportError_
+    from mocap.interop.take_table import plan_takes
+
+    f = tmp_path / "wand_rest.c3d"
+    f.write_bytes(b"")
+    with pytest.raises(ImportError_, match=r"wand_rest.c3d: the name holds rest and wand"):
+        plan_takes([f])
+
+
 def test_patterns():
     rx = compile_pattern("du{du}_t{trial}")
     assert rx.fullmatch("DU04_t3").groupdict() == {"du": "04", "trial": "3"}
     assert rx.fullmatch("du4_t3_extra") is None
     assert compile_pattern("*_DU{du}_trial{trial}").fullmatch("smile_DU1_trial2")
     assert compile_pattern("smile_{plan}").fullmatch("smile_planB")["plan"] == "planB"
+    from mocap.interop.marker_data import ImportError_
+
+    for bad, why in (("du{dof}", "unknown field {dof}"), ("du{du}_{du}", "{du} appears twice"),
+                     ("smile", "holds no field")):
+        with pytest.raises(ImportError_, match=re.escape(why)):
+            compile_pattern(bad)
 
 
 # --- a session with nothing to analyse says so --------------------------------------------------------

@@ -210,13 +210,14 @@ def _match_logs(takes: list[TakePlan], logs: list[Path], guessed: list[str], not
 
 # --- kinds from names and patterns ------------------------------------------------------------
 
-def kind_from_name(stem: str) -> str | None:
+def kind_from_name(stem: str, where: str | None = None) -> str | None:
     """``rest``, ``wand`` or ``ground`` when the stem holds that word (``smile_rest``,
-    ``Wand-02``), else None; a stem naming two of them is an error."""
+    ``Wand-02``), else None; a stem naming two of them is an error naming ``where`` (the
+    file)."""
     found = set(_NAMED.findall(stem.lower()))
     if len(found) > 1:
-        raise ImportError_(f"{stem}: the name holds {' and '.join(sorted(found))}; say which "
-                           "in a take table (--takes)")
+        raise ImportError_(f"{where or stem}: the name holds {' and '.join(sorted(found))}; say "
+                           "which kind the take is in a take table (--takes)")
     return found.pop() if found else None
 
 
@@ -281,7 +282,7 @@ def _by_name(files: list[Path], patterns: list[str], guessed: list[str]) -> list
                 takes.append(TakePlan(f, name, kind, du, trial, g.get("plan"), where=where))
                 break
         else:
-            kind = kind_from_name(f.stem)
+            kind = kind_from_name(f.stem, str(f))
             if kind is not None:
                 guessed.append(f"take {name!r}: kind {kind!r}, from its file name {f.name!r}")
             elif patterns:
@@ -357,7 +358,7 @@ def _from_table(files: list[Path], table: Path, guessed: list[str], notes: list[
             raise ImportError_(f"{where}: kind {row['kind']!r}; expected one of "
                                f"{', '.join(TAKE_KINDS)}")
         if not kind:
-            kind = ("response" if du is not None else kind_from_name(src.stem) or "motion")
+            kind = ("response" if du is not None else kind_from_name(src.stem, where) or "motion")
             why = ("it names a DU" if du is not None else "from its file name"
                    if kind in NAMED_KINDS else "no kind given")
             guessed.append(f"{where}: take {name!r} kind {kind!r} ({why})")
