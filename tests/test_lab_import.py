@@ -145,7 +145,7 @@ def write_hand_session(root: Path, numbers: dict, names=_take_name) -> Path:
             toml += ['kind = "rest"', ""]
             continue
         rows.to_csv(root / "takes" / f"{name}_commands.csv", index=False)
-        du, trial = (int(v) for v in name[2:].split("_t"))
+        du, trial = (int(v) for v in _take_name(stem)[2:].split("_t"))
         toml += ['kind = "response"', f'commands = "takes/{name}_commands.csv"', f"du = {du}",
                  f"trial = {trial}", ""]
     (root / "session.toml").write_text("\n".join(toml))
@@ -412,3 +412,40 @@ def test_command_logs_are_matched_in_the_spellings_labs_use(tmp_path, log):
                       commands_dir=tmp_path / "logs")
     assert plan.takes[0].commands == tmp_path / "logs" / log
     assert any("catalog.csv" in n for n in plan.notes)  # matches no take: noted, not imported
+
+
+def write_qtm_tsv(path: Path, X: np.ndarray) -> None:
+    """A Qualisys QTM 3D TSV export (file version 2.0.0), gaps as empty cells, typed here."""
+    n = X.shape[0]
+    head = [("FILE_VERSION", "2.0.0"), ("NO_OF_FRAMES", str(n)), ("NO_OF_CAMERAS", "8"),
+            ("NO_OF_MARKERS", str(len(MARKERS))), ("FREQUENCY", f"{FPS:g}"), ("NO_OF_ANALOG", "0"),
+            ("ANALOG_FREQUENCY", "0"), ("DESCRIPTION", "--"), ("TIME_STAMP", "2026-11-22, 10:00:00"),
+            ("DATA_INCLUDED", "3D"), ("MARKER_NAMES", "\t".join(MARKERS)),
+            ("TRAJECTORY_TYPES", "\t".join(["Measured"] * len(MARKERS)))]
+    lines = [f"{k}\t{v}" for k, v in head]
+    lines.append("Frame\tTime\t" + "\t".join(f"{m} {a}" for m in MARKERS for a in "XYZ") + "\t")
+    for f in range(n):
+        lines.append(f"{f + 1}\t{f / FPS:.3f}\t" + "\t".join(_num(v) for v in X[f].ravel()) + "\t")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_qtm_tsv_takes_by_pattern_hold_the_numbers_as_written(lab_numbers, tmp_path):
+    from mocap.core.session import load_session
+
+    keep = {k: lab_numbers[k] for k in ("smile_rest", "smile_DU2_trial3")}
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    for stem, (X, rows) in keep.items():
+        write_qtm_tsv(lab / f"{stem}.tsv", X)
+        if rows is not None:
+            rows.to_csv(lab / f"{stem}_commands.csv", index=False)
+    assert main(["import", *map(str, sorted(lab.iterdir())), "--pattern", "smile_DU{du}_trial{trial}",
+                 "--out", str(tmp_path / "S")]) == 0
+    hand = load_session(write_hand_session(tmp_path / "hand", keep, names=lambda s: s))
+    got = load_session(tmp_path / "S")
+    assert [(t.name, t.kind, t.du, t.trial) for t in got.takes] == [
+        ("smile_DU2_trial3", "response", 2, 3), ("smile_rest", "rest", None, None)]
+    for name in ("smile_rest", "smile_DU2_trial3"):
+        pd.testing.assert_frame_equal(got.read_take(name), hand.read_take(name))
+    pd.testing.assert_frame_equal(got.read_commands("smile_DU2_trial3"),
+                                  hand.read_commands("smile_DU2_trial3"))
