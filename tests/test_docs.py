@@ -11,8 +11,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
-PAGES = ("index.md", "format.md", "outputs.md", "cli.md", "api.md", "architecture.md",
-         "calibration.md", "indices.md", "simulator.md", "discrepancy.md")
+PAGES = ("index.md", "format.md", "import.md", "outputs.md", "cli.md", "api.md",
+         "architecture.md", "calibration.md", "indices.md", "simulator.md", "discrepancy.md")
 
 
 def python_blocks(text: str) -> list[str]:
@@ -28,6 +28,30 @@ def test_the_api_example_runs(tmp_path, monkeypatch):
         exec(compile(code, f"docs/api.md block {i + 1}", "exec"), namespace)  # noqa: S102
     assert (tmp_path / "results" / "properties.csv").is_file()
     assert not any((tmp_path / "virtual" / "session").rglob("properties.csv"))
+
+
+def test_the_import_page_matches_the_importer(tmp_path):
+    """docs/import.md's take table and DU table have the importer's columns, its column table
+    lists each once, and its example table plans as the page says."""
+    from mocap.interop.take_table import DU_TABLE_COLUMNS, TABLE_COLUMNS, plan_takes
+
+    text = (DOCS / "import.md").read_text(encoding="utf-8")
+    tables = re.findall(r"^```csv\n(.*?)^```", text, flags=re.S | re.M)
+    assert tables[0].splitlines()[0].split(",") == list(TABLE_COLUMNS)
+    assert tables[1].splitlines()[0].split(",") == list(DU_TABLE_COLUMNS)
+    assert re.findall(r"^\| `(\w+)` \|", text, flags=re.M) == list(TABLE_COLUMNS)
+    (tmp_path / "takes.csv").write_text(tables[0])
+    (tmp_path / "commands").mkdir()
+    for row in tables[0].splitlines()[1:]:
+        (tmp_path / row.split(",")[0]).write_bytes(b"")
+        log = row.split(",")[6]
+        if log:
+            (tmp_path / log).write_text("time_s,du,command\n0.0,1,0\n")
+    plan = plan_takes([], table=tmp_path / "takes.csv")
+    assert [(t.name, t.kind, t.du, t.trial, t.plan) for t in plan.takes] == [
+        ("rest", "rest", None, None, None), ("du1_t1", "response", 1, 1, None),
+        ("du1_t2", "response", 1, 2, None), ("smile_A", "motion", None, None, "A")]
+    assert plan.takes[1].commands == tmp_path / "commands" / "smile_DU1_trial1_commands.csv"
 
 
 def test_python_blocks_are_found():

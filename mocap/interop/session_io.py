@@ -1,12 +1,15 @@
-"""Vendor files to a labeled FORMAT.md session, and a run's (or a 3D session's) takes to C3D.
+"""Vendor files to a labeled session (docs/format.md), and a run's (or a 3D session's) takes to C3D.
 
-Import: each file becomes a 3D take (``takes/<stem>.csv``) of a new session; markers keep their
+Import: each file becomes a 3D take (``takes/<name>.csv``) of a new session; markers keep their
 labels (the union over files; a marker a file lacks is a gap there, noted); all files must share
-one frame rate. Commands come from C3D analog channels labeled ``DU<n>`` (as ``export`` writes
-them), resampled to the point rate, or from a command CSV given for a single file; they must be
-integers 0..255 (not rounded silently). The manifest is written for the user to complete: every
-take is a ``motion`` take until its kind is set, DUs are named ``DU <n>``; the report says what is
-missing. Nothing is overwritten: the output folder must not hold a session yet.
+one frame rate. What each file is (kind, DU, trial, plan, command log) comes from a take table, a
+name pattern or the file's name (:mod:`mocap.interop.take_table`). Commands come from command
+logs (CSV ``time_s,du,command``: named in the table, matched by name in a folder, or one given for
+a single file) or else from C3D analog channels labeled ``DU<n>`` (as ``export`` writes them),
+resampled to the point rate; they must be integers 0..255 (not rounded silently). DUs are named
+from a DU table or numbered. Every guess and repair is listed in ``import_report.json`` beside
+``session.toml``; when kinds or commands are missing the manifest says what to complete.
+Nothing is overwritten: the output folder must not hold a session yet.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import pandas as pd
 from mocap.core.atomic import write_csv, write_text
 from mocap.interop.c3d_file import read_c3d, write_c3d
 from mocap.interop.marker_data import ImportError_, MarkerData, unique_names
+from mocap.interop.take_table import DUEntry, Planning, check_response, plan_takes, read_du_table
 from mocap.interop.vendor_text import sniff
 
 DU_CHANNEL = re.compile(r"^\s*du\s*0*(\d+)\s*$", re.IGNORECASE)
@@ -125,37 +129,92 @@ def _safe_name(stem: str, taken: set) -> str:
     return name
 
 
+def _plan(files: list[Path], commands, takes, patterns) -> Planning:
+    """The takes to write (:mod:`mocap.interop.take_table`); ``commands`` a folder of logs
+    matched by name, or one log for a single file."""
+    single = None
+    folder = None
+    if commands is not None:
+        c = Path(commands)
+        folder, single = (c, None) if c.is_dir() else (None, c)
+    if isinstance(patterns, str):
+        patterns = [patterns]
+    planning = plan_takes(files, table=takes, patterns=patterns or (), commands_dir=folder)
+    if single is not None:
+        if len(planning.takes) != 1:
+            raise ImportError_(f"--commands {single}: one command log applies to a single imported "
+                               "file; for several, give a folder of logs named like the takes "
+                               "(--commands DIR) or name each in a take table (--takes)")
+        planning = dataclasses.replace(planning, takes=(dataclasses.replace(
+            planning.takes[0], commands=single),))
+    return planning
+
+
 def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLike | None = None,
-                 fps: float | None = None) -> dict:
-    """Write a labeled session from vendor files; return the report (notes, what is missing)."""
+                 fps: float | None = None, takes: str | os.PathLike | None = None,
+                 patterns=(), dus: str | os.PathLike | None = None) -> dict:
+    """Write a labeled session from vendor files; return the report (notes, guesses, what is
+    missing).
+
+    files : the takes' files (C3D, Motive CSV, QTM TSV, Vicon CSV; command logs among them are
+    taken as logs); commands : a folder of command logs matched by name, or one log for a single
+    file; takes : a take table (CSV) saying what each file is; patterns : name patterns
+    (``"du{du}_t{trial}"``) used without a table; dus : a DU table (CSV ``du,name[,feedback]``).
+    Without a table or a pattern, ``rest``, ``wand`` and ``ground`` takes are recognised by name
+    and every other file is a ``motion`` take. ImportError_ names the file or line at fault.
+    """
     files = [Path(f) for f in files]
     out = Path(out_dir)
     if (out / "session.toml").exists():
         raise ImportError_(f"{out}: already holds a session; choose a new folder")
-    if commands is not None and len(files) != 1:
-        raise ImportError_("--commands applies to a single imported file; import files one by one")
-    command_table = None if commands is None else _read_command_csv(Path(commands))
-    datas = [read_any(f, fps) for f in files]
-    notes: list[str] = []
-    for k, (f, d) in enumerate(zip(files, datas)):
-        safe = _csv_safe(d.names, str(f), notes)
+    planning = _plan(files, commands, takes, patterns)
+    guessed = list(planning.guessed)
+    notes: list[str] = list(planning.notes)
+    du_table = read_du_table(dus, notes) if dus is not None else None
+    plans = list(planning.takes)
+    datas = [read_any(t.source, fps) for t in plans]
+    for k, (t, d) in enumerate(zip(plans, datas)):
+        safe = _csv_safe(d.names, str(t.source), notes)
         if safe != d.names:
-            datas[k] = dataclasses.replace(d, names=unique_names(safe, str(f), notes))
+            datas[k] = dataclasses.replace(d, names=unique_names(safe, str(t.source), notes))
     rates = {d.fps for d in datas}
     if len(rates) > 1:
-        raise ImportError_(f"frame rates differ between files ({sorted(rates)} Hz); a session has one")
+        by_rate = {}
+        for t, d in zip(plans, datas):
+            by_rate.setdefault(d.fps, t.source)
+        raise ImportError_("frame rates differ between files ("
+                           + ", ".join(f"{r:g} Hz: {f}" for r, f in sorted(by_rate.items()))
+                           + "); a session has one")
     rate = rates.pop()
     names: list[str] = []
     for d in datas:
         names += [n for n in d.names if n not in names]
     notes = [n for d in datas for n in d.notes] + notes
+    # every take's commands and checks first: an error leaves nothing written
+    commands_of = []
+    for k, (t, d) in enumerate(zip(plans, datas)):
+        rows = None
+        analog = _analog_commands(d)
+        if t.commands is not None:
+            rows = _read_command_csv(t.commands)
+            if analog:
+                notes.append(f"{t.source}: analog channels DU<n> ignored; commands from {t.commands}")
+        elif analog:
+            rows = pd.concat([_command_rows(v, rate, du, f"{t.source} analog DU{du}")
+                              for du, v in analog.items()], ignore_index=True)
+        driven = set() if rows is None else {int(u) for u in rows.loc[rows["command"] > 0, "du"]}
+        plans[k], guess = check_response(t, driven)
+        if guess:
+            guessed.append(guess)
+        commands_of.append(rows)
     taken: set = set()
-    takes, dus = [], set()
-    for f, d in zip(files, datas):
-        name = _safe_name(f.stem, taken)
+    entries, dus_used = [], set()
+    for t, d, rows in zip(plans, datas, commands_of):
+        f = t.source
+        stem = _safe_name(t.name, taken)
         missing = [n for n in names if n not in d.names]
         if missing:
-            notes.append(f"{f}: markers {missing} absent from this file: gaps in take {name!r}")
+            notes.append(f"{f}: markers {missing} absent from this file: gaps in take {t.name!r}")
         n_frames = d.X.shape[0]
         idx = {n: i for i, n in enumerate(d.names)}
         X = np.full((n_frames, len(names), 3), np.nan)
@@ -165,45 +224,75 @@ def import_files(files, out_dir: str | os.PathLike, *, commands: str | os.PathLi
         df = pd.DataFrame({"frame": np.repeat(np.arange(n_frames), len(names)),
                            "marker": np.tile(np.asarray(names, dtype=object), n_frames),
                            "x": X[..., 0].ravel(), "y": X[..., 1].ravel(), "z": X[..., 2].ravel()})
-        write_csv(df, out / "takes" / f"{name}.csv")
-        entry = {"name": name, "file": f"takes/{name}.csv", "source": str(f)}
-        cmd = {}
-        if commands is not None:
-            c = command_table
-            write_csv(c, out / "takes" / f"{name}_commands.csv")
-            cmd = {int(du): None for du in c["du"].unique()}
-        else:
-            for du, values in _analog_commands(d).items():
-                cmd[du] = _command_rows(values, rate, du, f"{f} analog DU{du}")
-            if cmd:
-                write_csv(pd.concat(cmd.values(), ignore_index=True), out / "takes" / f"{name}_commands.csv",
-                          decimals=9)
-        if cmd:
-            entry["commands"] = f"takes/{name}_commands.csv"
-            dus |= set(cmd)
-        takes.append(entry)
-    lines = ['# written by "mocap import": complete it before "mocap run"',
-             "# - set each take's kind: rest (the face still), response (one DU's trapezoid: add du",
-             "#   and trial), motion (anything else); a session needs a rest take to find markers",
-             "# - name your DUs below and say which have position feedback",
-             'schema = "mocap-session/1"', f"name = {_toml_string(out.name)}", f"fps = {float(rate)!r}", ""]
-    for du in sorted(dus):
-        lines += ["[[dus]]", f"id = {du}", f'name = "DU {du}"', "feedback = false", ""]
-    for t in takes:
-        lines += ["[[takes]]", f'name = "{t["name"]}"', 'kind = "motion"', f'file = "{t["file"]}"']
-        if "commands" in t:
-            lines.append(f'commands = "{t["commands"]}"')
+        write_csv(df, out / "takes" / f"{stem}.csv")
+        entry = {"name": t.name, "kind": t.kind, "file": f"takes/{stem}.csv", "source": str(f)}
+        entry.update({k: v for k, v in (("du", t.du), ("trial", t.trial), ("plan", t.plan),
+                                        ("commands_offset_s", t.commands_offset_s)) if v is not None})
+        if rows is not None:
+            write_csv(rows, out / "takes" / f"{stem}_commands.csv",
+                      decimals=None if t.commands is not None else 9)
+            entry["commands"] = f"takes/{stem}_commands.csv"
+            entry["commands_source"] = str(t.commands) if t.commands is not None else "analog DU<n>"
+            dus_used |= {int(u) for u in rows["du"].unique()}
+        if t.du is not None:
+            dus_used.add(t.du)
+        entries.append(entry)
+    du_entries = _du_entries(dus_used, du_table, dus, guessed, notes)
+    assumed = [e["name"] for e in entries if any(g.startswith(f"take {e['name']!r}: kind 'motion'")
+                                                   for g in guessed)]
+    todo = []
+    if assumed:
+        todo.append(f"set each take's kind: {len(assumed)} take(s) assumed 'motion' (rest, "
+                    "response with du and trial, motion), or import again with --takes or "
+                    "--pattern")
+    if not dus_used:
+        todo.append("no commands found: add command files (time_s,du,command) and [[dus]] tables, "
+                    "or import again with --commands DIR")
+    lines = ['# written by "mocap import"; what it guessed is listed in import_report.json']
+    if todo:
+        lines += ['# complete it before "mocap run":'] + [f"# - {x}" for x in todo]
+    lines += ['schema = "mocap-session/1"', f"name = {_toml_string(out.name)}",
+              f"fps = {float(rate)!r}", ""]
+    for du in du_entries:
+        lines += ["[[dus]]", f"id = {du.id}", f"name = {_toml_string(du.name)}",
+                  f"feedback = {'true' if du.feedback else 'false'}", ""]
+    for e in entries:
+        lines += ["[[takes]]", f"name = {_toml_string(e['name'])}", f'kind = "{e["kind"]}"',
+                  f'file = "{e["file"]}"']
+        if "commands" in e:
+            lines.append(f'commands = "{e["commands"]}"')
+        for key in ("du", "trial"):
+            if key in e:
+                lines.append(f"{key} = {e[key]}")
+        if "plan" in e:
+            lines.append(f"plan = {_toml_string(e['plan'])}")
+        if "commands_offset_s" in e:
+            lines.append(f"commands_offset_s = {float(e['commands_offset_s'])!r}")
         lines.append("")
     write_text(out / "session.toml", "\n".join(lines))
-    todo = ["set each take's kind (all are 'motion' now)"]
-    if not dus:
-        todo.append("no commands found: add command files (time_s,du,command) and [[dus]] tables")
-    else:
-        todo.append(f"name DUs {sorted(dus)} and set their feedback")
-    report = {"session": str(out), "fps": rate, "markers": names, "takes": takes,
-              "dus": sorted(dus), "notes": notes, "to_complete": todo}
+    kinds: dict[str, int] = {}
+    for e in entries:
+        kinds[e["kind"]] = kinds.get(e["kind"], 0) + 1
+    report = {"session": str(out), "fps": rate, "markers": names, "takes": entries,
+              "kinds": kinds, "dus": sorted(dus_used), "guessed": guessed, "notes": notes,
+              "to_complete": todo}
     write_text(out / "import_report.json", json.dumps(report, indent=2))
     return report
+
+
+def _du_entries(used: set[int], table, table_path, guessed: list[str], notes: list[str]
+                ) -> list[DUEntry]:
+    """The manifest's DUs: those the commands and takes use, named from the DU table when given
+    (else numbered, a guess); the table's other DUs are declared too (noted)."""
+    table = table or {}
+    unnamed = sorted(used - set(table))
+    if unnamed:
+        where = f"not in {table_path}" if table_path is not None else "no DU table (--dus)"
+        guessed.append(f"DUs {unnamed}: {where}; named 'DU <n>', feedback false")
+    extra = sorted(set(table) - used)
+    if extra:
+        notes.append(f"{table_path}: DUs {extra} drive no imported take; declared all the same")
+    return [table.get(d, DUEntry(d, f"DU {d}")) for d in sorted(used | set(table))]
 
 
 def export_c3d(source: str | os.PathLike, dest: str | os.PathLike, takes=None) -> list[Path]:

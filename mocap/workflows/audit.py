@@ -15,7 +15,9 @@ written into audit.json):
   spread (fail when rejected for abnormal spread);
 - rejections: every marker and trajectory left out, with its reason;
 - missing markers: a template marker (markers.csv) that was never reconstructed fails by name
-  (no camera pair sees it, or it fell off).
+  (no camera pair sees it, or it fell off);
+- analyses: a session with nothing to analyse (no response take; and no command file, no DU)
+  warns, and the verdict names why (:func:`nothing_to_analyse`).
 
 The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
 bad markers are left out by the rejections; a failing calibration or camera condemns the capture).
@@ -52,14 +54,40 @@ def _verdict(value: float, th: dict) -> str:
     return "fail" if value > th["fail"] else "warn" if value > th["warn"] else "pass"
 
 
+def nothing_to_analyse(session) -> str | None:
+    """Why ``session`` (a ``mocap.core.session.Session``) gives the analyses nothing, or None.
+
+    The paper's analyses, and the motion takes' evaluation that builds on them, need response
+    takes. Without one the message names what is missing: response takes, and command files and
+    DUs when there are none either, with the takes the session has by kind.
+    """
+    if session.takes_of_kind("response"):
+        return None
+    why = ["no response takes"]
+    if not any(t.commands is not None for t in session.takes):
+        why.append("no command files")
+    if not session.dus:
+        why.append("no DU")
+    kinds: dict[str, int] = {}
+    for t in session.takes:
+        kinds[t.kind] = kinds.get(t.kind, 0) + 1
+    has = ", ".join(f"{n} {k}" for k, n in kinds.items())
+    return (f"nothing to analyse: {', '.join(why)} (the session has {has} take(s)); only the "
+            "trajectories and the audit are written. Declare the response takes in session.toml "
+            "(kind = \"response\", du, trial, commands) and the DUs ([[dus]]); 'mocap import' "
+            "does it from a take table (--takes) or a name pattern (--pattern)")
+
+
 def audit_capture(session_name: str, calibration, reconstruction, averages, rejections,
-                  *, min_cameras: int = 3) -> dict:
+                  *, min_cameras: int = 3, unanalysable: str | None = None) -> dict:
     """The audit of a run as a JSON-ready dict.
 
     calibration : ``mocap.calib.wand_calibration.CalibrationResult`` (raw sessions) or None;
     reconstruction : ``mocap.reconstruction.takes.Reconstruction``; averages : the DUs'
     ``TrialAverage``; rejections : the rejections table; min_cameras : the cameras a 3D point
-    needed in the reconstruction (a marker seen by fewer fails).
+    needed in the reconstruction (a marker seen by fewer fails); unanalysable : why the session
+    has nothing to analyse (:func:`nothing_to_analyse`), or None: a warning item, kept in
+    ``nothing_to_analyse`` and named beside the verdict.
     """
     recon = reconstruction
     names = list(recon.markers.names)
@@ -131,6 +159,9 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
     for name in missing:
         items.append(("marker", name, "fail", "never reconstructed (in markers.csv, not found in "
                       "the rest take: no camera pair sees it, or it fell off)"))
+    report["nothing_to_analyse"] = unanalysable
+    if unanalysable:
+        items.append(("session", "analyses", "warn", unanalysable))
     report["min_cameras"] = int(min_cameras)
     report["noise_floor_mm"] = recon.noise_floor_mm
     report["rejections"] = [{"du": (None if pd.isna(r.du) else int(r.du)), "marker": r.marker,
@@ -147,6 +178,8 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
 
 def _markdown(a: dict) -> str:
     lines = [f"# Capture audit: {a['session']}", "", f"Overall verdict: **{a['verdict']}**", ""]
+    if a.get("nothing_to_analyse"):
+        lines[-2] += f" ({a['nothing_to_analyse'].split(';')[0]})"
     if a["flagged"]:
         lines += ["## Flagged", "", "| kind | item | verdict | why |", "|---|---|---|---|"]
         lines += [f"| {f['kind']} | {f['item']} | {f['verdict']} | {f['why']} |" for f in a["flagged"]]

@@ -40,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     a = res.summary["audit"]
+    if (res.audit or {}).get("nothing_to_analyse"):
+        print(f"warning: {res.audit['nothing_to_analyse']}", file=sys.stderr)
     print(f"audit verdict: {a['verdict']}")
     for f in a["flagged"]:
         print(f"  {f['verdict']:4s} {f['kind']} {f['item']}: {f['why']}")

@@ -8,11 +8,18 @@ from pathlib import Path
 
 DESCRIPTION = """\
 Turn C3D files, OptiTrack Motive CSV exports, Qualisys QTM TSV 3D exports and Vicon Nexus CSV
-exports into a labeled session (docs/format.md, 3D takes), one take per file. Commands come from C3D
-analog channels named DU<n> or from --commands (one file only). The manifest is written for you
-to complete (take kinds, DU names); every repair made on the way (units converted, duplicate
-labels renamed, rigid bodies ignored, missing frames filled as gaps) is listed in
-import_report.json and printed.
+exports into a labeled session (docs/format.md, 3D takes), one take per file, ready for
+'mocap run'. What each file is comes from a take table (--takes: CSV with the columns
+file,name,kind,du,trial,plan,commands,commands_offset_s, all but file optional) or from name
+patterns (--pattern "du{du}_t{trial}": a matching file is a response take of that DU and
+trial); rest, wand and ground takes are recognised by name. Without either, every other file is
+a motion take for you to complete. Command logs (time_s,du,command) come from the table, from a
+folder of logs named like the takes (--commands DIR: smile_DU1_trial2_commands.csv for
+smile_DU1_trial2.c3d), from one file for a single take, or else from C3D analog channels named
+DU<n>. DUs are named from --dus (CSV du,name[,feedback]) or numbered. Everything the import
+guessed, and every repair made on the way (units converted, duplicate labels renamed, rigid
+bodies ignored, missing frames filled as gaps), is printed and kept in import_report.json
+beside session.toml. See docs/import.md.
 
 Other labs' wand recordings become a session of unlabeled 2D blobs with one wand take, ready
 for 'mocap calibrate' (no ground square: the world frame is the first camera's): per-blob
@@ -21,17 +28,33 @@ are taken) and DLTdv/easyWand/Argus xypts.csv files (bottom-left origin, NaN whe
 an Argus/easyWand camera profile or --image-size. --wand-offsets is required for them.
 
 examples:
+  mocap import lab/*.c3d --takes lab/takes.csv --commands lab/commands --out sessions/robot1
+  mocap import lab/*.c3d --pattern "smile_DU{du}_trial{trial}" --commands lab --dus dus.csv --out s1
   mocap import trial01.c3d trial02.c3d --out sessions/robot1
   mocap import take.csv --fps 120 --commands take_commands.csv --out sessions/motive1
   mocap import wand_points.csv --wand-offsets 0,660 --image-size 1280x800 --out sessions/lab_wand
   mocap import wand_xypts.csv --profile profile.txt --wand-offsets 0,660 --fps 100 --out s2
 """
 
+GUESSES_SHOWN = 40  # printed; all are in import_report.json
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("files", type=Path, nargs="+", help=".c3d, Motive/Vicon .csv or QTM .tsv files")
+    p.add_argument("files", type=Path, nargs="*",
+                   help=".c3d, Motive/Vicon .csv or QTM .tsv files (with --takes: default the "
+                        "table's files)")
     p.add_argument("--out", type=Path, required=True, help="new session folder")
-    p.add_argument("--commands", type=Path, default=None, help="command CSV for a single file")
+    p.add_argument("--takes", type=Path, default=None, metavar="CSV",
+                   help="take table: file,name,kind,du,trial,plan,commands,commands_offset_s "
+                        "(all but file optional)")
+    p.add_argument("--pattern", action="append", default=[], metavar="PATTERN",
+                   help="file-name pattern with {du}, {trial}, {plan} and * (e.g. "
+                        "'du{du}_t{trial}'); repeat for several; used without --takes")
+    p.add_argument("--commands", type=Path, default=None, metavar="DIR_OR_CSV",
+                   help="folder of command logs matched by take name or file stem, or one "
+                        "command CSV for a single file")
+    p.add_argument("--dus", type=Path, default=None, metavar="CSV",
+                   help="DU table: du,name[,feedback]; DUs not in it are named 'DU <n>'")
     p.add_argument("--fps", type=float, default=None, help="frame rate, where a file lacks it")
     p.add_argument("--wand-offsets", default=None,
                    help="wand recordings: marker offsets along the wand, mm (e.g. 0,660)")
@@ -43,34 +66,66 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mocap.interop.marker_data import ImportError_
-    from mocap.interop.session_io import import_files
     from mocap.interop.wand_points import is_blob_table, is_xypts
     from mocap.core.paths import OutputPathError, check_output_path
 
+    if not args.files and args.takes is None:
+        print("error: mocap import needs FILES or a take table (--takes)", file=sys.stderr)
+        return 2
+    if args.takes is not None and args.pattern:
+        print("error: give --takes or --pattern, not both (the table says what each file is)",
+              file=sys.stderr)
+        return 2
+    extra = [p for p in (args.commands, args.takes, args.dus) if p is not None]
     try:
-        check_output_path(args.out, inputs=[*args.files, *([args.commands] if args.commands else [])])
+        check_output_path(args.out, inputs=[*args.files, *extra])
     except OutputPathError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    if len(args.files) == 1 and (is_blob_table(args.files[0]) or is_xypts(args.files[0])):
+    if len(args.files) == 1 and args.takes is None and (is_blob_table(args.files[0])
+                                                        or is_xypts(args.files[0])):
         try:
             return _import_wand(args)
         except ImportError_ as e:
             print(f"error: {e}", file=sys.stderr)
             return 1
     try:
-        report = import_files(args.files, args.out, commands=args.commands, fps=args.fps)
+        report = _import_takes(args)
     except ImportError_ as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    print(f"session written to {report['session']}: {len(report['takes'])} takes, "
+    print_report(report)
+    return 0
+
+
+def _import_takes(args: argparse.Namespace) -> dict:
+    """The labeled import (:func:`mocap.interop.session_io.import_files`): its report."""
+    from mocap.interop.session_io import import_files
+
+    return import_files(args.files, args.out, commands=args.commands, fps=args.fps,
+                        takes=args.takes, patterns=args.pattern, dus=args.dus)
+
+
+def print_report(report: dict) -> None:
+    """What was written, guessed and noted, and what is left to complete (stdout)."""
+    kinds = ", ".join(f"{n} {k}" for k, n in report["kinds"].items())
+    print(f"session written to {report['session']}: {len(report['takes'])} takes ({kinds}), "
           f"{len(report['markers'])} markers at {report['fps']:g} Hz, DUs {report['dus']}")
     for n in report["notes"]:
         print(f"  note: {n}")
-    print("to complete in session.toml:")
-    for t in report["to_complete"]:
-        print(f"  - {t}")
-    return 0
+    guessed = report["guessed"]
+    if guessed:
+        print(f"guessed ({len(guessed)}; check them, all are listed in import_report.json):")
+        for g in guessed[:GUESSES_SHOWN]:
+            print(f"  - {g}")
+        if len(guessed) > GUESSES_SHOWN:
+            print(f"  ... and {len(guessed) - GUESSES_SHOWN} more")
+    if report["to_complete"]:
+        print("to complete in session.toml:")
+        for t in report["to_complete"]:
+            print(f"  - {t}")
+    else:
+        print(f"ready: mocap run {report['session']} --out OUT")
 
 
 def _import_wand(args: argparse.Namespace) -> int:

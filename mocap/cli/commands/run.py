@@ -93,11 +93,14 @@ def run(args: argparse.Namespace) -> int:
               "resumes from it", file=sys.stderr)
         return 1
     s = result.summary
+    a = result.audit or {}
+    if a.get("nothing_to_analyse"):
+        print(f"warning: {a['nothing_to_analyse']}", file=sys.stderr)
     print(f"{s['session']['name']}: {sum(s['counts']['takes'].values())} takes, "
           f"{s['counts']['rows']} face-take rows; stages: {', '.join(s['stages'])}; "
           f"results in {result.out_dir}")
-    a = result.audit or {}
-    print(f"audit verdict: {a.get('verdict')}")
+    print(f"audit verdict: {a.get('verdict')}"
+          + (" (nothing to analyse)" if a.get("nothing_to_analyse") else ""))
     if a.get("missing_markers"):
         print(f"  markers in markers.csv never reconstructed: {', '.join(a['missing_markers'])}")
     for f in a.get("flagged", []):

@@ -565,6 +565,7 @@ class _Keys:
 
     def __init__(self, session: Session, settings: RunSettings, fp,
                  writers: RunWriters = RunWriters()):
+        from mocap.workflows.audit import nothing_to_analyse
         from mocap.workflows.run.cache import make_key
 
         face = [t for t in session.takes if t.kind in FACE_KINDS]
@@ -601,7 +602,7 @@ class _Keys:
                                 figures=writers.analysis_figures is not None)
         self.audit = make_key("audit", trials=self.trials, calibrate=self.calibrate,
                               takes=self.takes, min_cameras=settings.reconstruction.min_cameras,
-                              session=session.name,
+                              session=session.name, unanalysable=nothing_to_analyse(session),
                               figures=writers.audit_figures is not None)
         self.recording = make_key("recording", analyze=self.analyze if settings.analyze else None,
                                   audit=self.audit, commands=commands, du_ids=session.du_ids,
@@ -769,12 +770,13 @@ class _Composer:
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 
-        from mocap.workflows.audit import audit_capture
+        from mocap.workflows.audit import audit_capture, nothing_to_analyse
 
         audit = self.stage(
             "audit", lambda: audit_capture(session.name, calibration, recon, trials.averages,
                                            trials.rejections,
-                                           min_cameras=settings.reconstruction.min_cameras),
+                                           min_cameras=settings.reconstruction.min_cameras,
+                                           unanalysable=nothing_to_analyse(session)),
             lambda a: write_audit_files(out, a, recon, calibration,
                                         self.writers.audit_figures))
         stages.append("audit")
@@ -811,6 +813,8 @@ class _Composer:
         counts["rows"] = int(sum(s.blobs or s.points for s in stats.values()))
         names = list(recon.markers.names)
         warnings_list = list(session.warnings) + [w for a in trials.averages for w in a.warnings]
+        if audit.get("nothing_to_analyse"):
+            warnings_list.append(audit["nothing_to_analyse"])
         summary = {
             "session": {"name": session.name, "dir": str(Path(session.root).resolve()),
                         "dimension": session.dimension, "fps": session.fps,
