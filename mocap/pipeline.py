@@ -833,8 +833,10 @@ class _Composer:
             "audit": {"verdict": audit["verdict"], "flagged": audit["flagged"]},
         }
         if analysis is not None:
-            summary["properties"] = analysis.properties[
-                ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean"]].to_dict("records")
+            summary["properties"] = analysis.properties[  # literal, then corrected (docs/outputs.md)
+                ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean",
+                 "sensitivity_corrected", "hysteresis_corrected", "dyssynchrony_corrected",
+                 "linearity_mean_corrected"]].to_dict("records")
             summary["motion_evaluations"] = [
                 {"take": take, "plan": plan, "rms_forward": ev.rms_forward,
                  "rms_backward": ev.rms_backward, "lag_s": ev.lag_s}
