@@ -80,12 +80,17 @@ def _quiet(msg: str) -> None:
     pass
 
 
+# the output layout's version (docs/outputs.md): raised when a file or column is renamed or dropped
+OUTPUT_LAYOUT = 2
+
+
 def _versions() -> dict:
     import numpy
     import pandas
     import scipy
 
-    return {"facemocap": __version__, "python": platform.python_version(),
+    return {"outputs_layout": OUTPUT_LAYOUT, "facemocap": __version__,
+            "python": platform.python_version(),
             "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
 
 

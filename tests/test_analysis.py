@@ -305,6 +305,15 @@ def test_properties_file(small_run):
     assert list(summary[0]) == ["du", "sensitivity", "hysteresis", "dyssynchrony",
                                 "linearity_mean", "sensitivity_corrected", "hysteresis_corrected",
                                 "dyssynchrony_corrected", "linearity_mean_corrected"]
+    # docs/outputs.md documents every column (the ci columns by their pattern)
+    page = (Path(__file__).resolve().parents[1] / "docs" / "outputs.md").read_text(encoding="utf-8")
+    section = page[page.index("### `properties.csv`"):page.index("### `audit.json`")]
+    for column in LAYOUT_PROPERTIES + FURTHER_PROPERTIES + list(mp.columns) + list(lin.columns):
+        if not column.endswith(("_ci_lo", "_ci_hi")):
+            assert f"`{column}`" in section, column
+    assert "`<index>_ci_lo`" in section and "`<index>_ci_hi`" in section
+    assert "# Outputs (layout version 2)" in page and json.loads(
+        (small_run.out_dir / "summary.json").read_text())["versions"]["outputs_layout"] == 2
     by_du = props.set_index("du")
     for row in summary:
         for k, v in row.items():
