@@ -7,7 +7,8 @@ the noise-free path: the noise covariance is subtracted from the positions' cova
 first eigenvalue's share of the trace taken without flooring any eigenvalue (the corrected
 covariance is unbiased; flooring the small eigenvalues at 0 would turn the noise of the noise
 estimate into a bias towards lower linearity). It can leave [0, 1] by that noise where a marker
-barely moves.
+barely moves or moves on a straight line; the outputs report shares within [0, 1]
+(:func:`share_mean`).
 
 The noise covariance is best measured in the take itself (:func:`step_noise_covariance`): in a
 static-response take the face is at rest within each command step, so each trial's positions

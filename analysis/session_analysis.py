@@ -33,10 +33,10 @@ MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its tr
 
 # properties.csv's columns in the layout's order (docs/outputs.md): a plain name is the paper's
 # computation literally, the same name with ``_corrected`` its noise-free estimate
-PAPER_INDICES = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis",
-                 "dyssynchrony", "linearity_mean")
-PROPERTY_COLUMNS = (["du", "name", *PAPER_INDICES, *(f"{k}_corrected" for k in PAPER_INDICES),
-                     "linearity_std", "max_displacement_mm", "n_markers"])
+LITERAL_COLUMNS = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis",
+                   "dyssynchrony", "linearity_mean")
+PROPERTY_COLUMNS = ["du", "name", *LITERAL_COLUMNS, *(f"{k}_corrected" for k in LITERAL_COLUMNS),
+                    "linearity_std", "max_displacement_mm", "n_markers"]
 # further columns, named for what they are (docs/indices.md): the literal fits' bootstrap
 # intervals (``*_ci_lo``, ``*_ci_hi``); the along-path estimator: the fits on the displacement
 # along each marker's principal direction normalised by its plateau, over the ramps' command
