@@ -16,7 +16,7 @@ import pandas as pd
 from mocap.analysis.design.inverse_response import PlanTiming
 from mocap.analysis.design.evaluation import MotionEvaluation, evaluate_motion, realized_delta
 from mocap.analysis.paper.displacement import plateau_mask
-from mocap.analysis.paper.linearity import spatial_linearity, step_noise_covariance
+from mocap.analysis.paper.linearity import share_mean, spatial_linearity, step_noise_covariance
 from mocap.analysis.noise.corrected import (
     capture_noise_covariance,
     corrected_dyssynchrony,
@@ -31,14 +31,18 @@ from mocap.analysis.paper.properties import du_properties
 MIN_STEP_DOF = 30  # in-take noise covariance needs this many degrees of freedom per marker
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
 
-PROPERTY_COLUMNS = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity",
-                    "hysteresis", "dyssynchrony", "linearity_mean", "linearity_std",
-                    "max_displacement_mm", "n_markers", "dyssynchrony_raw",
-                    "linearity_corrected_mean"]
-# today's other estimators, in columns named for what they are (docs/indices.md): the fits on
-# the displacement along each marker's principal direction normalised by its plateau, over the
-# ramps' command lines one step beyond each ramp, markers with a peak 20 x their noise; the
-# dyssynchrony on command-step means with their noise removed
+# properties.csv's columns in the layout's order (docs/outputs.md): a plain name is the paper's
+# computation literally, the same name with ``_corrected`` its noise-free estimate
+LITERAL_COLUMNS = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis",
+                   "dyssynchrony", "linearity_mean")
+PROPERTY_COLUMNS = ["du", "name", *LITERAL_COLUMNS, *(f"{k}_corrected" for k in LITERAL_COLUMNS),
+                    "linearity_std", "max_displacement_mm", "n_markers"]
+# further columns, named for what they are (docs/indices.md): the literal fits' bootstrap
+# intervals (``*_ci_lo``, ``*_ci_hi``); the along-path estimator: the fits on the displacement
+# along each marker's principal direction normalised by its plateau, over the ramps' command
+# lines one step beyond each ramp, markers with a peak 20 x their noise (``*_along_path``), its
+# dyssynchrony on command-step means with their noise removed and its linearity with the
+# in-take noise covariance removed
 ALONG_PATH = ("alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis")
 
 
@@ -55,8 +59,9 @@ class SessionAnalysis:
     """The paper's analyses of a session.
 
     properties : one row per DU (properties.csv); linearity : per (DU, marker) (linearity.csv);
-    marker_properties : per (DU, marker) fits; du : DU -> its DUProperties; keep : DU -> (M,)
-    bool, markers not rejected; fitted : DU -> (M,) bool, markers in the response fits;
+    marker_properties : per (DU, marker) along-path fits; du : DU -> its DUProperties (the
+    along-path estimator); keep : DU -> (M,) bool, markers not rejected; fitted : DU -> (M,)
+    bool, markers in the along-path fits;
     fields_mm : DU -> (M, 3) mean displacement at full command (mm); motions : the motion takes
     evaluated against their plans (``evaluate_plan_take``), added by the composer; paper : DU ->
     its PaperIndices (the paper's recipe, ``mocap.analysis.paper.indices``).
@@ -128,15 +133,20 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                       noise_cov_mm2: np.ndarray | None = None, jobs: int = 1) -> SessionAnalysis:
     """Linearity, fitted responses and indices for every DU's averaged response.
 
-    The paper's columns (``alpha_fwd`` ... ``linearity_mean``, ``dyssynchrony_raw``) are the
-    paper's recipe on the measured data (``mocap.analysis.paper.indices``) over the markers the
-    rejections keep; ``dyssynchrony`` and ``linearity_corrected_mean`` estimate what that recipe
-    gives on noise-free positions of the same trials, over the same markers
-    (``mocap.analysis.noise.corrected``; the capture noise measured on each take's still frames).
-    Columns ending ``_corrected`` are the paper's fits on the same noise-corrected chords
-    (``corrected_fits``). Columns ending ``_along_path``, ``dyssynchrony_step_means`` and
-    ``linearity_step_noise_mean`` are the along-path estimator (docs/indices.md says when to
-    prefer which).
+    One naming rule (docs/outputs.md): the plain columns (``alpha_fwd`` ... ``hysteresis``,
+    ``dyssynchrony``, ``linearity_mean``) are the paper's recipe literally on the measured data
+    (``mocap.analysis.paper.indices``) over the markers the rejections keep; the same names
+    ending ``_corrected`` estimate what that recipe gives on noise-free positions of the same
+    trials, over the same markers (``mocap.analysis.noise.corrected``; the capture noise
+    measured on each take's still frames): the fits on the noise-corrected chords
+    (``corrected_fits``), ``dyssynchrony_corrected`` (``corrected_dyssynchrony``) and
+    ``linearity_mean_corrected``, the mean of the markers' corrected shares clipped to [0, 1]
+    (``mocap.analysis.paper.linearity.share_mean``). Columns ending ``_along_path``,
+    ``dyssynchrony_step_means`` and ``linearity_step_noise_mean`` are the along-path estimator
+    (docs/indices.md says when to prefer which); ``*_ci_lo``, ``*_ci_hi`` the literal fits'
+    bootstrap intervals. marker_properties.csv holds the along-path fits per marker
+    (``*_along_path``); linearity.csv each marker's ``linearity`` (literal) and
+    ``linearity_corrected`` (clipped to [0, 1]).
 
     noise_mm : optional (M,) per-marker measurement noise sd (mm, per axis; the rest take's
         noise floor); the trial mean's noise is noise_mm / sqrt(n_trials). With it, the
@@ -199,24 +209,20 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             field_mm = np.nanmean(avg.mean[hold] - avg.rest_mm[None], axis=0)
         peak = np.nanmax(np.where(np.isfinite(avg.displacement_mm), avg.displacement_mm, -np.inf), axis=0)
         kept = paper.keep
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            lin_c_mean = float(np.nanmean(lin_c[kept])) if kept.any() else np.nan
         row = {"du": avg.du, "name": du_names.get(avg.du, f"DU{avg.du}"),
                "alpha_fwd": paper.alpha_fwd, "beta_fwd": paper.beta_fwd,
                "alpha_bwd": paper.alpha_bwd, "beta_bwd": paper.beta_bwd,
                "sensitivity": paper.sensitivity, "hysteresis": paper.hysteresis,
-               "dyssynchrony": dys_c,
-               "linearity_mean": paper.linearity_mean, "linearity_std": paper.linearity_std,
-               "max_displacement_mm": float(np.nanmax(peak[keep])) if keep.any() else np.nan,
-               "n_markers": int(kept.sum()),
-               "dyssynchrony_raw": paper.dyssynchrony_raw,
-               "linearity_corrected_mean": lin_c_mean}
+               "dyssynchrony": paper.dyssynchrony, "linearity_mean": paper.linearity_mean}
+        row.update({f"{k}_corrected": v for k, v in fits_c.items()})
+        row["dyssynchrony_corrected"] = dys_c
+        row["linearity_mean_corrected"] = share_mean(lin_c, kept)
+        row.update({"linearity_std": paper.linearity_std,
+                    "max_displacement_mm": float(np.nanmax(peak[keep])) if keep.any() else np.nan,
+                    "n_markers": int(kept.sum())})
         for k, (lo, hi) in paper.ci.items():
             row[f"{k}_ci_lo"] = lo
             row[f"{k}_ci_hi"] = hi
-        for k, v in fits_c.items():
-            row[f"{k}_corrected"] = v
         along = {"alpha_fwd": props.fwd.alpha, "beta_fwd": props.fwd.beta,
                  "alpha_bwd": props.bwd.alpha, "beta_bwd": props.bwd.beta,
                  "sensitivity": props.sensitivity, "hysteresis": props.hysteresis}
@@ -224,19 +230,21 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
             row[f"{k}_along_path"] = along[k]
         row["n_markers_along_path"] = int(props.n_markers)
         row["dyssynchrony_step_means"] = props.dyssynchrony
-        row["linearity_step_noise_mean"] = float(np.nanmean(lin_step[fit_keep])) if fit_keep.any() else np.nan
+        row["linearity_step_noise_mean"] = share_mean(lin_step, fit_keep)
         lin = paper.linearity
         lin_du, marker_du = [], []
+        pm = props.per_marker
         for m, name in enumerate(names):
             lin_du.append({"du": avg.du, "marker": name, "linearity": lin[m],
-                           "linearity_corrected": lin_c[m],
+                           "linearity_corrected": float(np.clip(lin_c[m], 0.0, 1.0)),
                            "max_displacement_mm": peak[m], "kept": bool(keep[m])})
-            pm = props.per_marker
-            marker_du.append({"du": avg.du, "marker": name, "alpha_fwd": pm["alpha_fwd"][m],
-                              "beta_fwd": pm["beta_fwd"][m], "alpha_bwd": pm["alpha_bwd"][m],
-                              "beta_bwd": pm["beta_bwd"][m],
-                              "sensitivity": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
-                              "hysteresis": pm["beta_fwd"][m] - pm["beta_bwd"][m],
+            marker_du.append({"du": avg.du, "marker": name,
+                              "alpha_fwd_along_path": pm["alpha_fwd"][m],
+                              "beta_fwd_along_path": pm["beta_fwd"][m],
+                              "alpha_bwd_along_path": pm["alpha_bwd"][m],
+                              "beta_bwd_along_path": pm["beta_bwd"][m],
+                              "sensitivity_along_path": 0.5 * (pm["alpha_fwd"][m] + pm["alpha_bwd"][m]),
+                              "hysteresis_along_path": pm["beta_fwd"][m] - pm["beta_bwd"][m],
                               "max_displacement_mm": peak[m], "kept": bool(keep[m]),
                               "fitted": bool(fit_keep[m])})
         return props, paper, keep, fit_keep, field_mm, row, lin_du, marker_du

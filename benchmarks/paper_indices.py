@@ -64,7 +64,7 @@ def truth_indices(run_dir: Path, seed: int = 2018) -> pd.DataFrame:
         rows.append({"du": du, "alpha_fwd": p.alpha_fwd, "beta_fwd": p.beta_fwd,
                      "alpha_bwd": p.alpha_bwd, "beta_bwd": p.beta_bwd,
                      "sensitivity": p.sensitivity, "hysteresis": p.hysteresis,
-                     "dyssynchrony": p.dyssynchrony_raw, "linearity": p.linearity_mean,
+                     "dyssynchrony": p.dyssynchrony, "linearity": p.linearity_mean,
                      "n_markers": int(p.keep.sum())})
     return pd.DataFrame(rows).set_index("du")
 
@@ -82,7 +82,7 @@ def noise_draws(run_dir: Path, draws: int, noise_mm: float = 0.025, seed: int = 
     rng = np.random.default_rng(seed)
     rows = []
     for du, T, keep, tm, sched, fps in noise_free_trials(run_dir, seed):
-        truth = paper_indices(T.mean(axis=0), T, keep, tm, fps, n_boot=0).dyssynchrony_raw
+        truth = paper_indices(T.mean(axis=0), T, keep, tm, fps, n_boot=0).dyssynchrony
         K, n, M = T.shape[:3]
         c = command_matrix(sched, fps, n, [du])[:, 0]
         n_prior = 15 * K * 6
@@ -145,16 +145,16 @@ def table(est: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, dict]:
     lines = [
         "| DU | markers | sensitivity (paper) | along path | truth | beta_fwd (paper) | truth "
         "| beta_bwd (paper) | truth | hysteresis (paper) | along path | truth "
-        "| dyssynchrony_raw | dyssynchrony (corrected) | step means | truth "
-        "| linearity_mean | linearity_corrected_mean | truth "
+        "| dyssynchrony | dyssynchrony_corrected | step means | truth "
+        "| linearity_mean | linearity_mean_corrected | truth "
         "| sensitivity_corrected | beta_fwd_corrected | beta_bwd_corrected |",
         "|" + "---|" * 22,
     ]
     err = {"sensitivity_rel": [], "sensitivity_along_path_rel": [], "sensitivity_corrected_rel": [],
            "beta_fwd_corrected_abs": [], "beta_bwd_corrected_abs": [], "beta_fwd_abs": [],
-           "beta_bwd_abs": [], "hysteresis_abs": [], "dyssynchrony_raw_rel": [],
-           "dyssynchrony_rel": [], "dyssynchrony_step_means_rel": [], "linearity_mean_abs": [],
-           "linearity_corrected_abs": []}
+           "beta_bwd_abs": [], "hysteresis_abs": [], "dyssynchrony_rel": [],
+           "dyssynchrony_corrected_rel": [], "dyssynchrony_step_means_rel": [],
+           "linearity_mean_abs": [], "linearity_mean_corrected_abs": []}
     for du, t in truth.iterrows():
         e = est.loc[du]
         err["sensitivity_rel"].append(e["sensitivity"] / t["sensitivity"] - 1)
@@ -165,19 +165,19 @@ def table(est: pd.DataFrame, truth: pd.DataFrame) -> tuple[str, dict]:
         err["beta_fwd_abs"].append(e["beta_fwd"] - t["beta_fwd"])
         err["beta_bwd_abs"].append(e["beta_bwd"] - t["beta_bwd"])
         err["hysteresis_abs"].append(e["hysteresis"] - t["hysteresis"])
-        err["dyssynchrony_raw_rel"].append(e["dyssynchrony_raw"] / t["dyssynchrony"] - 1)
         err["dyssynchrony_rel"].append(e["dyssynchrony"] / t["dyssynchrony"] - 1)
+        err["dyssynchrony_corrected_rel"].append(e["dyssynchrony_corrected"] / t["dyssynchrony"] - 1)
         err["dyssynchrony_step_means_rel"].append(e["dyssynchrony_step_means"] / t["dyssynchrony"] - 1)
         err["linearity_mean_abs"].append(e["linearity_mean"] - t["linearity"])
-        err["linearity_corrected_abs"].append(e["linearity_corrected_mean"] - t["linearity"])
+        err["linearity_mean_corrected_abs"].append(e["linearity_mean_corrected"] - t["linearity"])
         lines.append(
             f"| {du} | {int(e['n_markers'])} | {e['sensitivity']:.4f} | {e['sensitivity_along_path']:.4f} "
             f"| {t['sensitivity']:.4f} | {e['beta_fwd']:.1f} | {t['beta_fwd']:.1f} "
             f"| {e['beta_bwd']:.1f} | {t['beta_bwd']:.1f} | {e['hysteresis']:.1f} "
             f"| {e['hysteresis_along_path']:.1f} | {t['hysteresis']:.1f} "
-            f"| {e['dyssynchrony_raw']:.4f} | {e['dyssynchrony']:.4f} "
+            f"| {e['dyssynchrony']:.4f} | {e['dyssynchrony_corrected']:.4f} "
             f"| {e['dyssynchrony_step_means']:.4f} | {t['dyssynchrony']:.4f} "
-            f"| {e['linearity_mean']:.4f} | {e['linearity_corrected_mean']:.4f} | {t['linearity']:.4f} "
+            f"| {e['linearity_mean']:.4f} | {e['linearity_mean_corrected']:.4f} | {t['linearity']:.4f} "
             f"| {e['sensitivity_corrected']:.4f} | {e['beta_fwd_corrected']:.1f} "
             f"| {e['beta_bwd_corrected']:.1f} |")
     worst = {k: float(np.max(np.abs(v))) for k, v in err.items()}
@@ -246,8 +246,8 @@ Mean error over the DUs: {json.dumps({k: round(v, 4) for k, v in errors['mean'].
 
 Reading it: the literal columns on measured data carry the recipe's own noise biases
 (sensitivity about 20 % low, betas 3-7 high, dyssynchrony several times too high, linearity a few
-hundredths low); `dyssynchrony` and `linearity_corrected_mean` remove them for the two indices they
-estimate.{chance} The along-path
+hundredths low); `dyssynchrony_corrected` and `linearity_mean_corrected` remove them for the two
+indices they estimate.{chance} The along-path
 sensitivity matches the recipe's noise-free value here because this face's paths are straight.
 The `*_corrected` fits (the recipe's fits on the same noise-corrected chords) land within 1.3 %
 (sensitivity) and 0.4 command units (betas) of the recipe's noise-free values on every DU.

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -262,17 +265,59 @@ def test_inverse_sigmoid_and_plans():
 
 # ---- the whole session -------------------------------------------------------------------
 
+# output layout version 2 (docs/outputs.md), typed from the contract: a plain name is the paper's
+# computation literally, ``_corrected`` its noise-free estimate; then the further columns
+LAYOUT_PROPERTIES = [
+    "du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity", "hysteresis",
+    "dyssynchrony", "linearity_mean",
+    "alpha_fwd_corrected", "beta_fwd_corrected", "alpha_bwd_corrected", "beta_bwd_corrected",
+    "sensitivity_corrected", "hysteresis_corrected", "dyssynchrony_corrected",
+    "linearity_mean_corrected",
+    "linearity_std", "max_displacement_mm", "n_markers"]
+FURTHER_PROPERTIES = [
+    "alpha_fwd_ci_lo", "alpha_fwd_ci_hi", "beta_fwd_ci_lo", "beta_fwd_ci_hi", "alpha_bwd_ci_lo",
+    "alpha_bwd_ci_hi", "beta_bwd_ci_lo", "beta_bwd_ci_hi", "sensitivity_ci_lo",
+    "sensitivity_ci_hi", "hysteresis_ci_lo", "hysteresis_ci_hi",
+    "alpha_fwd_along_path", "beta_fwd_along_path", "alpha_bwd_along_path", "beta_bwd_along_path",
+    "sensitivity_along_path", "hysteresis_along_path", "n_markers_along_path",
+    "dyssynchrony_step_means", "linearity_step_noise_mean"]
+
+
 def test_properties_file(small_run):
+    """The output tables' columns, exactly as docs/outputs.md lists them (layout version 2)."""
     props = pd.read_csv(small_run.out_dir / "properties.csv")
-    cols = ["du", "name", "alpha_fwd", "beta_fwd", "alpha_bwd", "beta_bwd", "sensitivity",
-            "hysteresis", "dyssynchrony", "linearity_mean", "linearity_std",
-            "max_displacement_mm", "n_markers"]
-    assert list(props.columns[: len(cols)]) == cols
+    assert list(props.columns) == LAYOUT_PROPERTIES + FURTHER_PROPERTIES
     for k in ("alpha_fwd", "beta_fwd", "hysteresis", "sensitivity"):
         assert (props[f"{k}_ci_lo"] <= props[k]).all() and (props[k] <= props[f"{k}_ci_hi"]).all()
+    for k in ("linearity_mean", "linearity_mean_corrected", "linearity_step_noise_mean"):
+        assert props[k].between(0, 1).all(), k
     lin = pd.read_csv(small_run.out_dir / "linearity.csv")
-    assert list(lin.columns[:2]) == ["du", "marker"] and "linearity" in lin.columns
+    assert list(lin.columns) == ["du", "marker", "linearity", "max_displacement_mm",
+                                 "linearity_corrected", "kept"]
     assert lin["linearity"].between(0, 1).all()
+    assert lin["linearity_corrected"].dropna().between(0, 1).all()
+    mp = pd.read_csv(small_run.out_dir / "marker_properties.csv")
+    assert list(mp.columns) == ["du", "marker", "alpha_fwd_along_path", "beta_fwd_along_path",
+                                "alpha_bwd_along_path", "beta_bwd_along_path",
+                                "sensitivity_along_path", "hysteresis_along_path",
+                                "max_displacement_mm", "kept", "fitted"]
+    summary = json.loads((small_run.out_dir / "summary.json").read_text())["properties"]
+    assert list(summary[0]) == ["du", "sensitivity", "hysteresis", "dyssynchrony",
+                                "linearity_mean", "sensitivity_corrected", "hysteresis_corrected",
+                                "dyssynchrony_corrected", "linearity_mean_corrected"]
+    # docs/outputs.md documents every column (the ci columns by their pattern)
+    page = (Path(__file__).resolve().parents[1] / "docs" / "outputs.md").read_text(encoding="utf-8")
+    section = page[page.index("### `properties.csv`"):page.index("### `audit.json`")]
+    for column in LAYOUT_PROPERTIES + FURTHER_PROPERTIES + list(mp.columns) + list(lin.columns):
+        if not column.endswith(("_ci_lo", "_ci_hi")):
+            assert f"`{column}`" in section, column
+    assert "`<index>_ci_lo`" in section and "`<index>_ci_hi`" in section
+    assert "# Outputs (layout version 2)" in page and json.loads(
+        (small_run.out_dir / "summary.json").read_text())["versions"]["outputs_layout"] == 2
+    by_du = props.set_index("du")
+    for row in summary:
+        for k, v in row.items():
+            assert v == pytest.approx(by_du.loc[row["du"], k] if k != "du" else row["du"]), k
 
 
 def test_properties_match_truth(small_sim, small_run):
@@ -298,7 +343,7 @@ def test_properties_match_truth(small_sim, small_run):
         # 15 % or 0.0002 (its bias: test_noise_corrected_indices_unbiased_monte_carlo; the
         # paper preset's 10 trials: benchmarks/)
         assert abs(e["dyssynchrony_step_means"] - t["dyssynchrony"]) <= 0.15 * t["dyssynchrony"] + 2e-4, du
-        assert e["dyssynchrony_raw"] > e["dyssynchrony_step_means"]
+        assert e["dyssynchrony"] > e["dyssynchrony_step_means"]
         # the true paths are straight: the estimator's formula on the noise-free truth gives 1;
         # the noise-corrected linearity (in-take noise covariance removed) is within 0.001
         assert abs(e["linearity_step_noise_mean"] - 1.0) < 0.001, du
@@ -344,6 +389,65 @@ def test_figures_drawn_in_worker_processes_are_those_drawn_in_the_run(small_run,
     for f in files:
         assert f.read_bytes() == (r.out_dir / "figures" / f.name).read_bytes(), f.name
     assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == sorted(f.name for f in files)
+
+
+def test_figures_say_whether_literal_or_corrected(small_run):
+    """Each figure the run draws (the same jobs, drawn here; their files are the run's:
+    test_figures_drawn_in_worker_processes_are_those_drawn_in_the_run) names in its labels which
+    of the paper's literal computation and its noise-corrected estimate it shows, and shows the
+    columns it names: the property chart all three corrected, the response curves the literal
+    fit with the corrected values named, the linearity bars both, each labelled."""
+    from mocap.outputs import run_writers as run_outputs
+
+    r = small_run
+    props = pd.read_csv(r.out_dir / "properties.csv").set_index("du")
+    jobs = run_outputs.analysis_figure_jobs(Path("unused"), r.session, r.reconstruction, r.trials,
+                                            r.analysis)
+    seen = set()
+    for path, draw, args in jobs:
+        fig = draw(*args)
+        ax = fig.axes[0]
+        name = path.name
+        if name == "property_chart.png":
+            scale = fig.axes[1].get_ylabel()  # the colorbar's
+            for label, column in ((ax.get_xlabel(), "sensitivity_corrected"),
+                                  (ax.get_ylabel(), "hysteresis_corrected"),
+                                  (scale, "dyssynchrony_corrected")):
+                assert label.startswith(column) and "noise-corrected" in label, label
+                assert "literal" not in label, label
+            assert "noise-corrected" in ax.get_title()
+            points = ax.collections[0]
+            np.testing.assert_allclose(points.get_offsets()[:, 0], props["sensitivity_corrected"])
+            np.testing.assert_allclose(points.get_offsets()[:, 1], props["hysteresis_corrected"])
+            np.testing.assert_allclose(points.get_array(), props["dyssynchrony_corrected"])
+        elif name.endswith("_response.png"):
+            du = int(name[2:4])
+            title = ax.get_title()
+            literal, corrected = title.split("\n")
+            assert "literal" in literal and "corrected" not in literal, title
+            assert f"dyssynchrony {props.loc[du, 'dyssynchrony']:.3f}" in literal, title
+            assert f"hysteresis {props.loc[du, 'hysteresis']:.0f}" in literal, title
+            assert "noise-corrected" in corrected, title
+            assert (f"dyssynchrony_corrected {props.loc[du, 'dyssynchrony_corrected']:.3f}"
+                    in corrected), title
+            fits = [t.get_text() for t in ax.get_legend().get_texts() if "fit" in t.get_text()]
+            assert len(fits) == 2 and all("literal fit" in t for t in fits), fits
+            assert f"alpha_fwd {props.loc[du, 'alpha_fwd']:.3f}" in fits[0], fits
+        elif name == "linearity.png":
+            legend = [t.get_text() for t in ax.get_legend().get_texts()]
+            assert any(t.startswith("linearity_mean +- linearity_std") and "literal" in t
+                       for t in legend), legend
+            assert any(t.startswith("linearity_mean_corrected") and "noise-corrected" in t
+                       for t in legend), legend
+            heights = [b.get_height() for b in ax.patches]
+            np.testing.assert_allclose(heights, props["linearity_mean"])
+            np.testing.assert_allclose(ax.lines[-1].get_ydata(), props["linearity_mean_corrected"])
+        elif name.endswith("_displacement_field.png"):
+            assert "measured" in ax.get_title() and "noise not removed" in ax.get_title()
+        else:
+            assert name.startswith("motion_") and "measured" in ax.get_ylabel(), name
+        seen.add(name.split("_")[0] if name.startswith("motion_") else name)
+    assert {"property_chart.png", "linearity.png", "du04_response.png", "motion"} <= seen
 
 
 def test_motion_takes_follow_their_plans(small_run):

@@ -153,7 +153,7 @@ fig = Figure()
 ax = fig.subplots()
 got = F.linearity_bars([1, 4], [0.9, 0.8], [0.05, 0.1], ax=ax)
 assert got is fig and ax.get_ylabel().startswith("spatial linearity"), ax.get_ylabel()
-new = F.property_chart([1, 4], [0.02, 0.05], [10, 60], [0.1, 0.3], [True, False])
+new = F.property_chart([1, 4], [0.02, 0.05], [10, 60], [0.1, 0.3], [True, False], "literal")
 assert isinstance(new, Figure) and new is not fig and len(new.axes) == 2  # the chart and its colorbar
 assert "matplotlib.pyplot" not in sys.modules
 """

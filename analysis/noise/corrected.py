@@ -161,7 +161,8 @@ def corrected_linearity(trials: np.ndarray, timing: ScheduleTiming, fps: float,
     """(M,) PCA share of the noise-free pooled positions over the schedule's frames (module
     docstring). trials (K, n_frames, M, 3) mm; noise_cov (M, 3, 3) mm^2 per trial and frame.
     NaN where the corrected total variance is not positive; can leave [0, 1] by the noise of the
-    estimate where a marker barely moves."""
+    estimate where a marker barely moves or its path is straight (the session analysis clips:
+    ``mocap.analysis.paper.linearity.share_mean`` for the mean, each share for linearity.csv)."""
     T = np.asarray(trials, float)[:, timing.schedule(np.shape(trials)[1], fps)]
     P = T.reshape(-1, *T.shape[2:])
     ok = np.all(np.isfinite(P), axis=-1)

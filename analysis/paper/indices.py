@@ -1,9 +1,10 @@
 """The paper's static-response indices computed literally (METHOD.md, "Static response").
 
 This module is the paper's recipe and nothing else: no noise handling, no smoothing. Its numbers
-are what properties.csv reports as ``alpha_fwd, beta_fwd, alpha_bwd, beta_bwd, sensitivity,
-hysteresis, dyssynchrony_raw, linearity_mean`` (OUTPUTS.md). The estimates of what this recipe
-gives on noise-free positions are in ``mocap.analysis.noise.corrected``.
+are what properties.csv reports under the plain names ``alpha_fwd, beta_fwd, alpha_bwd, beta_bwd,
+sensitivity, hysteresis, dyssynchrony, linearity_mean`` (docs/outputs.md). The estimates of what
+this recipe gives on noise-free positions (the same names ending ``_corrected``) are in
+``mocap.analysis.noise.corrected``.
 
 Time axis (the schedule's, read from the take's command rows, :func:`schedule_timing`):
 t = 0 at step s = 0 (one step before the first rising step), T_fwd the duration of the rising ramp
@@ -23,7 +24,7 @@ Recipe, on the trial-averaged positions v_m(t) (n_frames, n_markers, 3) mm:
 - one least-squares fit of R(c) = 1 / (1 + exp(-alpha (c - beta))) per branch over the pooled
   (c, delta_m) pairs of the kept markers (NaN pairs left out);
 - sensitivity (alpha_fwd + alpha_bwd) / 2, hysteresis beta_fwd - beta_bwd;
-- dyssynchrony_raw = mean over the schedule's frames of the sample standard deviation (ddof 1) of
+- dyssynchrony = mean over the schedule's frames of the sample standard deviation (ddof 1) of
   delta_m(t) over the kept markers (the paper's (1 / T_e) sum_t u_t on frames);
 - linearity l_m: the first principal component's share of the variance of all positions of
   marker m over the schedule's frames, all trials pooled; linearity_mean / _std over the kept
@@ -51,7 +52,7 @@ from mocap.core.schedules import TIME_TOL_S, ScheduleTiming, schedule_timing, ti
 class PaperIndices:
     """One DU's indices by the paper's recipe (module docstring).
 
-    alpha_* 1/command unit, beta_* command units; dyssynchrony_raw, linearity 1. ``delta``
+    alpha_* 1/command unit, beta_* command units; dyssynchrony, linearity 1. ``delta``
     (n_frames, n_markers): |d| / max |d| at every frame of the take (the maximum over the
     schedule's frames; frames recorded after the schedule keep their values); ``linearity``
     (n_markers,); ``keep`` (n_markers,) the markers used; ``ci``: name -> (2.5 %, 97.5 %) from a
@@ -62,7 +63,7 @@ class PaperIndices:
     beta_fwd: float
     alpha_bwd: float
     beta_bwd: float
-    dyssynchrony_raw: float
+    dyssynchrony: float
     linearity: np.ndarray
     delta: np.ndarray
     keep: np.ndarray

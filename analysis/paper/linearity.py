@@ -7,7 +7,8 @@ the noise-free path: the noise covariance is subtracted from the positions' cova
 first eigenvalue's share of the trace taken without flooring any eigenvalue (the corrected
 covariance is unbiased; flooring the small eigenvalues at 0 would turn the noise of the noise
 estimate into a bias towards lower linearity). It can leave [0, 1] by that noise where a marker
-barely moves.
+barely moves or moves on a straight line; the outputs report shares within [0, 1]
+(:func:`share_mean`).
 
 The noise covariance is best measured in the take itself (:func:`step_noise_covariance`): in a
 static-response take the face is at rest within each command step, so each trial's positions
@@ -18,6 +19,8 @@ moves) left the corrected linearity 0.001-0.005 low on the paper preset.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -82,3 +85,19 @@ def spatial_linearity(P: np.ndarray, noise: np.ndarray | float | None = None) ->
     with np.errstate(invalid="ignore", divide="ignore"):
         lin = lam[:, -1] / total
     return np.where((n >= 3) & (total > 0), lin, np.nan)
+
+
+def share_mean(shares: np.ndarray, keep: np.ndarray) -> float:
+    """The mean of estimated shares of variance (M,) over the markers ``keep`` (M,) bool,
+    clipped to [0, 1] (NaN when no kept marker has one).
+
+    A noise-corrected share can leave [0, 1] by the noise of its estimate (module docstring);
+    their mean is clipped, not each share first: on a face whose markers move on nearly straight
+    lines every share near 1 could only be pulled down, and the mean of clipped shares would
+    lean low. Clipping the mean only moves it towards every value the true mean can take.
+    """
+    x = np.asarray(shares, float)[np.asarray(keep, bool)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        m = float(np.nanmean(x)) if x.size else float("nan")
+    return float(np.clip(m, 0.0, 1.0)) if np.isfinite(m) else float("nan")

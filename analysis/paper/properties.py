@@ -10,12 +10,15 @@ fitted against time by a logistic ``1 / (1 + exp(-a (t - b)))`` pooled over the 
 marker), then converted to command with the ramp's line: ``alpha = a / p1``, ``beta = p0 +
 p1 b`` (METHOD.md's t = T_s c / 255 for the paper's schedule).
 
+This is the along-path estimator (properties.csv's ``*_along_path`` columns and
+``dyssynchrony_step_means``); the paper's recipe literally is ``mocap.analysis.paper.indices``.
+
 Indices: sensitivity alpha_n = (alpha_fwd + alpha_bwd) / 2; hysteresis beta_fwd - beta_bwd
 (command units; positive when the backward curve stays high); dyssynchrony gamma = the mean over
 the take's frames of the sample standard deviation of delta_m(t) over the markers
-(``dyssynchrony_raw``, the paper's formula). Measurement noise inflates that spread: a marker
-moving 0.1 mm with 0.01 mm of noise on its trial mean has 0.1 of noise in its delta.
-``dyssynchrony`` estimates the noise-free index: the same formula on command-step means, with
+(``DUProperties.dyssynchrony_raw``, the paper's formula on this module's curves). Measurement
+noise inflates that spread: a marker moving 0.1 mm with 0.01 mm of noise on its trial mean has 0.1
+of noise in its delta. ``DUProperties.dyssynchrony`` estimates the noise-free index: the same formula on command-step means, with
 each marker's noise variance on its step mean subtracted from the variance over the markers
 (:func:`dyssynchrony_steps`). That noise variance follows how the curve was made, delta = (x -
 r) / (p - r), with r the mean over the rest lead-in and p the mean over the plateau: to first

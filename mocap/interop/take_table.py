@@ -268,11 +268,11 @@ def _unique(takes: list[TakePlan], guessed: list[str]) -> list[TakePlan]:
 
 
 def _by_name(files: list[Path], patterns: list[str], guessed: list[str]) -> list[TakePlan]:
-    compiled = [(p, compile_pattern(p)) for p in patterns]
+    compiled = [compile_pattern(p) for p in patterns]
     takes = []
     for f in files:
         where, name = str(f), _take_name(f.stem)
-        for text, rx in compiled:
+        for rx in compiled:
             m = rx.fullmatch(f.stem)
             if m:
                 g = m.groupdict()

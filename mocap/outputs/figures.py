@@ -71,36 +71,65 @@ def displacement_field(du: int, name: str, rest_mm: np.ndarray, d_mm: np.ndarray
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
-    ax.set_title(f"DU {du} ({name}): displacement field\narrows x{s:.1f}")
+    ax.set_title(f"DU {du} ({name}): displacement field, measured\n(trial mean at full command, "
+                 f"noise not removed); arrows x{s:.1f}", fontsize=9)
     if (~keep & ok).any():
         ax.legend(loc="lower right", fontsize=7)
     return fig
 
 
-def linearity_bars(dus, means, stds, *, ax=None) -> Figure:
-    fig, ax = _axes(ax, (max(4, 0.5 * len(dus) + 2), 3.6))
+# what a figure's values are, in its labels (docs/outputs.md's naming rule): the paper's
+# computation literally (the plain columns) or its noise-free estimate (the ``_corrected`` ones)
+KINDS = {"literal": ("", "the paper's computation, literal"),
+         "corrected": ("_corrected", "noise-corrected estimate")}
+
+
+def _kind(kind: str) -> tuple[str, str]:
+    """(column suffix, words) of ``kind``: "literal" or "corrected"."""
+    try:
+        return KINDS[kind]
+    except KeyError:
+        raise ValueError(f"kind: expected one of {sorted(KINDS)}, got {kind!r}") from None
+
+
+def linearity_bars(dus, means, stds, corrected=None, *, ax=None) -> Figure:
+    """Spatial linearity per DU: bars of the literal mean over markers with their standard
+    deviation (properties.csv's ``linearity_mean``, ``linearity_std``), and, when ``corrected``
+    is given, its noise-corrected estimate as dots (``linearity_mean_corrected``)."""
+    fig, ax = _axes(ax, (max(5.5, 0.5 * len(dus) + 2), 3.8))
     x = np.arange(len(dus))
     means, stds = np.asarray(means, float), np.asarray(stds, float)
     err = np.vstack([np.minimum(stds, means), np.minimum(stds, 1.0 - means)])  # within [0, 1]
-    ax.bar(x, means, yerr=err, capsize=3, color="tab:blue", alpha=0.8)
+    ax.bar(x, means, yerr=err, capsize=3, color="tab:blue", alpha=0.8,
+           label="linearity_mean +- linearity_std, the paper's computation, literal")
+    if corrected is not None:
+        ax.plot(x + 0.2, np.asarray(corrected, float), "D", color="tab:orange", mec="k", ms=5,
+                ls="none",
+                label="linearity_mean_corrected, noise-corrected estimate")
     ax.set_xticks(x, [str(d) for d in dus])
     ax.set_xlabel("DU")
-    ax.set_ylabel("spatial linearity (PC1 share, 1)")
-    ax.set_ylim(0, 1.05)
-    ax.set_title("Spatial linearity per DU (mean and std over markers)")
+    ax.set_ylabel("spatial linearity, PC1 share of variance (1)")
+    ax.set_ylim(0, 1.25)
+    ax.set_yticks(np.linspace(0, 1, 6))
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Spatial linearity per DU: literal (bars, mean and std over markers)"
+                 + (" and noise-corrected (dots)" if corrected is not None else ""), fontsize=9)
     return fig
 
 
-def response_curves(du, name, paper, fps: float, *, ax=None) -> Figure:
-    """The paper's response curves: delta = |d| / max |d| against the paper's abscissa c (forward
-    c = 255 t / T_s, backward c = 255 (t_end - t) / T_s), mean and spread over the kept markers,
-    with the sigmoids fitted by the paper's recipe (``mocap.analysis.paper.indices``)."""
+def response_curves(du, name, paper, fps: float, corrected: dict | None = None, *,
+                    ax=None) -> Figure:
+    """The paper's response curves, literal: delta = |d| / max |d| of the measured trial means
+    against the paper's abscissa c (forward c = 255 t / T_s, backward c = 255 (t_end - t) / T_s),
+    mean and spread over the kept markers, with the sigmoids fitted by the paper's recipe
+    (``mocap.analysis.paper.indices``). ``corrected``: properties.csv's ``hysteresis_corrected``
+    and ``dyssynchrony_corrected`` (named so), printed under the literal values for comparison."""
     fig, ax = _axes(ax, (5.5, 4.0))
     cgrid = np.linspace(0, paper.timing.top, 256)
     n = paper.delta.shape[0]
-    for branch, colour, label, a, b in (("forward", "tab:blue", "forward", paper.alpha_fwd,
+    for branch, colour, label, a, b in (("forward", "tab:blue", "fwd", paper.alpha_fwd,
                                          paper.beta_fwd),
-                                        ("backward", "tab:red", "backward", paper.alpha_bwd,
+                                        ("backward", "tab:red", "bwd", paper.alpha_bwd,
                                          paper.beta_bwd)):
         frames, c = getattr(paper.timing, branch)(n, fps)
         d = paper.delta[frames][:, paper.keep]
@@ -111,29 +140,41 @@ def response_curves(du, name, paper, fps: float, *, ax=None) -> Figure:
                 warnings.simplefilter("ignore", RuntimeWarning)
                 m, s = np.nanmean(d, axis=1), np.nanstd(d, axis=1)
         ax.fill_between(c, m - s, m + s, color=colour, alpha=0.2)
-        ax.plot(c, m, color=colour, lw=1, alpha=0.7, label=f"measured {label} (mean +- sd)")
+        ax.plot(c, m, color=colour, lw=1, alpha=0.7, label=f"measured {branch} (mean +- sd)")
         ax.plot(cgrid, sigmoid(cgrid, a, b), color=colour, lw=2.2,
-                label=f"R_{label[:3]}: alpha {a:.3f}, beta {b:.0f}")
+                label=f"R_{label}, literal fit: alpha_{label} {a:.3f}, beta_{label} {b:.0f}")
     ax.set_xlim(0, paper.timing.top)
     ax.set_ylim(-0.05, 1.1)
     ax.set_xlabel("command c = 255 t / T_s (paper's conversion)")
-    ax.set_ylabel("normalised displacement |d| / max |d| (1)")
-    ax.set_title(f"DU {du} ({name}), the paper's method: hysteresis {paper.hysteresis:.0f}, "
-                 f"dyssynchrony (raw) {paper.dyssynchrony_raw:.3f}", fontsize=9)
+    ax.set_ylabel("delta = |d| / max |d|, measured (1)")
+    title = (f"DU {du} ({name}), the paper's computation, literal: hysteresis "
+             f"{paper.hysteresis:.0f}, dyssynchrony {paper.dyssynchrony:.3f}")
+    if corrected:
+        title += (f"\nnoise-corrected estimates: hysteresis_corrected "
+                  f"{corrected['hysteresis_corrected']:.0f}, dyssynchrony_corrected "
+                  f"{corrected['dyssynchrony_corrected']:.3f}")
+    ax.set_title(title, fontsize=8)
     ax.legend(fontsize=7, loc="upper left")
     return fig
 
 
-def property_chart(dus, alphas, hysteresis, dyssynchrony, feedback, *, ax=None) -> Figure:
+def property_chart(dus, alphas, hysteresis, dyssynchrony, feedback, kind: str, *,
+                   ax=None) -> Figure:
+    """Sensitivity against hysteresis per DU, coloured by dyssynchrony, all three of one
+    ``kind``: "corrected" (properties.csv's ``sensitivity_corrected``, ``hysteresis_corrected``,
+    ``dyssynchrony_corrected``) or "literal" (``sensitivity``, ``hysteresis``,
+    ``dyssynchrony``); the axes and the title name it."""
+    suffix, words = _kind(kind)
     fig, ax = _axes(ax, (6.0, 4.6))
     sc = ax.scatter(alphas, hysteresis, c=dyssynchrony, cmap="viridis", s=80,
                     edgecolors=["k" if f else "none" for f in feedback], linewidths=1.5)
     for d, a, h in zip(dus, alphas, hysteresis):
         ax.annotate(str(d), (a, h), textcoords="offset points", xytext=(5, 4), fontsize=9)
-    fig.colorbar(sc, ax=ax, label="dyssynchrony gamma, noise-corrected estimate (1)")
-    ax.set_xlabel("sensitivity alpha, the paper's method (1/command unit)")
-    ax.set_ylabel("hysteresis beta_fwd - beta_bwd, the paper's method (command units)")
-    ax.set_title("Property chart (black edge: position feedback; smaller is better)", fontsize=10)
+    fig.colorbar(sc, ax=ax, label=f"dyssynchrony{suffix}: gamma, {words} (1)")
+    ax.set_xlabel(f"sensitivity{suffix}: alpha, {words} (1/command unit)")
+    ax.set_ylabel(f"hysteresis{suffix}: beta_fwd - beta_bwd,\n{words} (command units)")
+    ax.set_title(f"Property chart, all three values: {words}\n(black edge: position feedback; "
+                 "smaller is better)", fontsize=10)
     ax.grid(alpha=0.3)
     return fig
 
@@ -144,7 +185,7 @@ def motion_result(title, ev, *, ax=None) -> Figure:
     ax.fill_between(ev.t, ev.mean - ev.std, ev.mean + ev.std, color="tab:purple", alpha=0.2)
     ax.plot(ev.t, ev.mean, color="tab:purple", lw=1.5, label="realized (mean +- sd over markers)")
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("normalised displacement (1)")
+    ax.set_ylabel("normalised displacement, measured (1)")
     ax.set_title(f"{title}\nRMS fwd {ev.rms_forward:.3f}, bwd {ev.rms_backward:.3f}, "
                  f"lag {ev.lag_s * 1000:.0f} ms")
     ax.legend(fontsize=8)

@@ -37,6 +37,16 @@ def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials:
     evaluated motion take. ``res``: the run's ``SessionAnalysis``. Drawn on up to ``jobs``
     processes when there are at least :data:`PARALLEL_MIN_FIGURES` (the paper preset's 39:
     12.6-13.5 s in one process, 9.2-10.2 s on two). Returns the files, in the order above."""
+    return _draw_all(analysis_figure_jobs(out, session, recon, trials, res), bars, jobs)
+
+
+def analysis_figure_jobs(out: Path, session: Session, recon: Reconstruction, trials: Trials,
+                         res) -> list[tuple]:
+    """(path, draw, args) of each figure :func:`analysis_figures` draws, in its order:
+    ``draw(*args)`` returns the figure. The property chart shows the noise-corrected estimates
+    (``*_corrected``) on all three of its scales; the response curves are the paper's
+    computation literally, with the corrected hysteresis and dyssynchrony in the title; the
+    linearity bars both, each labelled (docs/outputs.md's naming rule)."""
     from mocap.outputs import figures as F
 
     du_names = {d.id: d.name for d in session.dus}
@@ -44,22 +54,27 @@ def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials:
     fig = out / "figures"
     rest = recon.markers.rest_mm
     props = res.properties
+    by_du = props.set_index("du")
     todo = []
     for avg in trials.averages:
         name = du_names.get(avg.du, "")
         todo.append((fig / f"du{avg.du:02d}_displacement_field.png", F.displacement_field,
                      (avg.du, name, rest, res.fields_mm[avg.du], res.keep[avg.du])))
+        corrected = {k: float(by_du.loc[avg.du, k])
+                     for k in ("hysteresis_corrected", "dyssynchrony_corrected")}
         todo.append((fig / f"du{avg.du:02d}_response.png", F.response_curves,
-                     (avg.du, name, res.paper[avg.du], avg.fps)))
+                     (avg.du, name, res.paper[avg.du], avg.fps, corrected)))
     todo.append((fig / "linearity.png", F.linearity_bars,
-                 (props["du"], props["linearity_mean"], props["linearity_std"])))
+                 (props["du"], props["linearity_mean"], props["linearity_std"],
+                  props["linearity_mean_corrected"])))
     todo.append((fig / "property_chart.png", F.property_chart,
-                 (props["du"], props["sensitivity"], props["hysteresis"], props["dyssynchrony"],
-                  [feedback.get(d, False) for d in props["du"]])))
+                 (props["du"], props["sensitivity_corrected"], props["hysteresis_corrected"],
+                  props["dyssynchrony_corrected"], [feedback.get(d, False) for d in props["du"]],
+                  "corrected")))
     plans = {t.name: t.plan for t in session.takes}
     for take, _, ev in res.motions:
         todo.append((fig / f"motion_{take}.png", F.motion_result, (f"{take} (plan {plans[take]})", ev)))
-    return _draw_all(todo, bars, jobs)
+    return todo
 
 
 def _draw_all(todo: list, bars: bool | None, jobs: int) -> list[Path]:

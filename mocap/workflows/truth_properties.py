@@ -2,8 +2,9 @@
 
 A workflow-level helper: it runs the analysis's own normalisation and fit on the simulator's
 noise-free true responses, so it sits above both (the simulator imports nothing from the
-analysis). ``mocap simulate`` writes its table to ``truth/properties.csv``; tests and benchmarks
-call :func:`true_properties` with the markers the pipeline fitted.
+analysis). ``mocap simulate`` writes its table to ``truth/properties.csv`` (under the along-path
+columns' names); tests and benchmarks call :func:`true_properties` with the markers the pipeline
+fitted.
 """
 
 from __future__ import annotations
@@ -67,9 +68,20 @@ def true_properties(cfg: SimConfig, face: VirtualFace, min_displacement_mm: floa
     return pd.DataFrame(rows)
 
 
+# truth/properties.csv names each value as properties.csv names the estimator that targets it
+# (docs/outputs.md: a plain name there is the paper's computation literally, which this is not)
+FILE_COLUMNS = {"alpha_fwd": "alpha_fwd_along_path", "beta_fwd": "beta_fwd_along_path",
+                "alpha_bwd": "alpha_bwd_along_path", "beta_bwd": "beta_bwd_along_path",
+                "sensitivity": "sensitivity_along_path", "hysteresis": "hysteresis_along_path",
+                "dyssynchrony": "dyssynchrony_step_means", "n_markers": "n_markers_along_path"}
+
+
 def write_true_properties(cfg: SimConfig, out_dir: str | Path) -> Path:
-    """Write ``out_dir/truth/properties.csv`` for the session ``simulate(cfg, out_dir)`` wrote."""
+    """Write ``out_dir/truth/properties.csv`` for the session ``simulate(cfg, out_dir)`` wrote:
+    :func:`true_properties` with its columns named as properties.csv's along-path estimator's
+    (``sensitivity_along_path``, ..., ``dyssynchrony_step_means``, ``n_markers_along_path``;
+    :data:`FILE_COLUMNS`), the columns that estimate them."""
     _, _, face = virtual_rig_and_face(cfg)
     path = Path(out_dir) / "truth" / "properties.csv"
-    write_csv(true_properties(cfg, face), path)
+    write_csv(true_properties(cfg, face).rename(columns=FILE_COLUMNS), path)
     return path

@@ -80,12 +80,17 @@ def _quiet(msg: str) -> None:
     pass
 
 
+# the output layout's version (docs/outputs.md): raised when a file or column is renamed or dropped
+OUTPUT_LAYOUT = 2
+
+
 def _versions() -> dict:
     import numpy
     import pandas
     import scipy
 
-    return {"facemocap": __version__, "python": platform.python_version(),
+    return {"outputs_layout": OUTPUT_LAYOUT, "facemocap": __version__,
+            "python": platform.python_version(),
             "numpy": numpy.__version__, "scipy": scipy.__version__, "pandas": pandas.__version__}
 
 
@@ -837,8 +842,10 @@ class _Composer:
             "audit": {"verdict": audit["verdict"], "flagged": audit["flagged"]},
         }
         if analysis is not None:
-            summary["properties"] = analysis.properties[
-                ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean"]].to_dict("records")
+            summary["properties"] = analysis.properties[  # literal, then corrected (docs/outputs.md)
+                ["du", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean",
+                 "sensitivity_corrected", "hysteresis_corrected", "dyssynchrony_corrected",
+                 "linearity_mean_corrected"]].to_dict("records")
             summary["motion_evaluations"] = [
                 {"take": take, "plan": plan, "rms_forward": ev.rms_forward,
                  "rms_backward": ev.rms_backward, "lag_s": ev.lag_s}
