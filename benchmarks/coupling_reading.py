@@ -68,13 +68,13 @@ def markdown(rows: list[dict], wall: float) -> str:
     def pct(v):
         return f"{100 * v:+.1f} %"
 
-    out = ["# Reading the coupling's kappa (issue #15)", "",
+    out = ["# Reading the coupling's kappa", "",
            "`python benchmarks/coupling_reading.py`: the sweep's small 4-DU sessions with a hidden "
            "coupling (kappa 0.35; forms: model = pull-weighted y_n (1 - kappa sum y_n' o), alt = "
            "uniform y_n (1 - kappa sum y_n'), alt2 = strain-stiffening y_n (1 - kappa sum "
            "y_n'^2)), the base model fitted on all takes, kappa read in travel where the multi-DU "
            "takes hold their DUs at full command (`coupling_kappa`, the workflow's reading) and "
-           "by the scalar law refitted in the model's drive (`law_kappa`, the reading before). "
+           "by the scalar law refitted in the model's drive (`law_kappa`, a second reading for comparison). "
            "Full command: every DU's command at its highest for 0.5 s (`full_command`). "
            "Errors against the simulator's kappa in travel (`coupling_travel_kappa`: kappa on "
            "straight and bowed paths).", "",

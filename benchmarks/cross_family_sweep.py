@@ -23,7 +23,7 @@ Shards run side by side (one process each) and append JSON lines; ``--summarise`
     python benchmarks/cross_family_sweep.py --summarise /tmp/sweep0.jsonl /tmp/sweep1.jsonl
     python benchmarks/cross_family_sweep.py --cases pi-bow:lag:2,boucwen-bow:lag+drift:2 > x.jsonl
     python benchmarks/cross_family_sweep.py --cases pi-bow:coupling:6:alt2 > y.jsonl
-    python benchmarks/cross_family_sweep.py --summarise x.jsonl --out cross_family_sweep_alt
+    python benchmarks/cross_family_sweep.py --summarise x.jsonl --out /tmp/subset  # not the page
 """
 
 from __future__ import annotations
@@ -268,7 +268,7 @@ def summarise(rows: list[dict], planned: int | None) -> tuple[dict, str]:
                "parameters_scored": len(errs),
                "final_rms_le_1_5": rms15, "final_rms_le_1_2": rms12,
                "by_effect": by_eff, "by_family": by_fam}
-    L = ["# Cross-family sweep of the discrepancy workflow (issue #15)", "",
+    L = ["# Cross-family sweep of the discrepancy workflow", "",
          "Small labeled sessions (4 DUs, 20 markers, 3 trials, identification battery, smiles A "
          "and C, 0.03 mm noise) of every base-face family x hidden effect; model-form effects on "
          "odd seeds, alt forms (equations the model does not share) on even seeds. Scored "

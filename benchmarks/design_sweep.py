@@ -165,7 +165,7 @@ def summarise(rows: list[dict], note: str = "") -> tuple[dict, str]:
                 c[1] += 1
                 c[2] += _first_within(v) is not None
                 c[3] += 1
-    L = ["# Design sweep: model-based design across base-face families (issue #15, point 4)", "",
+    L = ["# Design sweep: model-based design across base-face families", "",
          "Small labeled sessions (4 DUs, 20 markers, 3 trials, identification battery, smiles A and "
          "C, 0.03 mm capture noise) of each base-face family x hidden effect (none, or a 0.09 s lag "
          "in its alternative form: a critically damped second-order lag, which the model's "

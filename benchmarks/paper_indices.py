@@ -229,9 +229,9 @@ def main() -> None:
          "truth": truth.reset_index().to_dict("records")}, indent=2, default=float))
     text = f"""# The paper preset's indices against their literal noise-free values
 
-`python benchmarks/paper_indices.py` (issue #16). The session: `run.py`'s `paper` preset (16 DUs,
+`python benchmarks/paper_indices.py`. The session: `run.py`'s `paper` preset (16 DUs,
 10 trials, 116 markers, capture noise about 0.025 mm). "truth": the paper's recipe
-(`mocap.analysis.paper.indices`, windows and t -> c conversion of METHOD.md) on the simulator's
+(`mocap.analysis.paper.indices`, the paper's windows and t -> c conversion) on the simulator's
 noise-free positions of the same trials (each with its trial-to-trial variation; no capture
 noise, no skin jitter), over the markers the run kept. "paper": properties.csv's columns by the
 recipe on the measured data; "corrected": the noise-corrected estimates

@@ -7,8 +7,9 @@ Runs ``mocap run SESSION --out OUT`` four times into one folder: a first run, an
 rerun (target: at most 1/10 of the first run's time), a rerun with one analysis setting changed
 (``--bootstrap-samples 100``: the reconstruction is reused), and a run killed (SIGKILL) halfway
 through the reconstruction of a fresh folder then resumed. Wall times of whole processes
-(interpreter start and imports included); results in ``benchmarks/resume.json`` and
-``benchmarks/resume.md``.
+(interpreter start and imports included). Results go to one page, ``benchmarks/resume.md``
+(and ``resume.json``), one section per session (the sample session, the paper preset): a run
+replaces its session's section and keeps the others.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--session", type=Path, default=HERE.parent / "sample_data" / "session")
     ap.add_argument("--unchanged-only", action="store_true",
-                    help="only the first run and the unchanged rerun (printed, not saved)")
+                    help="only the first run and the unchanged rerun")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="mocap-resume-"))
     try:
@@ -63,34 +64,53 @@ def main() -> None:
         first, _ = timed(args.session, out)
         n_takes = len(list((out / "trajectories").glob("*.parquet")))
         unchanged, said = timed(args.session, out)
-        if args.unchanged_only:
-            print(f"first {first:.1f} s, unchanged rerun {unchanged:.1f} s "
-                  f"({unchanged / first:.3f} x): {said}")
-            return
-        analysis, said_analysis = timed(args.session, out, "--bootstrap-samples", "100")
-        resumed = killed_then_resumed(args.session, work / "killed", n_takes)
+        analysis, said_analysis, resumed = 0.0, "", {}
+        if not args.unchanged_only:
+            analysis, said_analysis = timed(args.session, out, "--bootstrap-samples", "100")
+            resumed = killed_then_resumed(args.session, work / "killed", n_takes)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     res = {"session": str(args.session), "machine": f"{platform.node()} ({os.cpu_count()} cores)",
            "date": time.strftime("%Y-%m-%d %H:%M"), "face_takes": n_takes,
            "first_run_s": round(first, 1), "unchanged_rerun_s": round(unchanged, 1),
-           "unchanged_ratio": round(unchanged / first, 3), "unchanged_says": said,
-           "analysis_setting_changed_s": round(analysis, 1), "analysis_says": said_analysis,
-           **resumed}
-    name = "resume" if args.session.name == "session" and "sample_data" in str(args.session) \
-        else "resume_" + args.session.parent.name
-    (HERE / f"{name}.json").write_text(json.dumps(res, indent=2) + "\n")
-    lines = [f"# mocap run: reuse and resume ({res['date']}, {res['machine']})", "",
-             f"Session `{args.session.relative_to(HERE.parent) if args.session.is_relative_to(HERE.parent) else args.session}`,"
-             f" {n_takes} face takes; wall times of whole processes.", "",
-             "| run | seconds | |", "|---|---|---|",
-             f"| first | {res['first_run_s']} | |",
-             f"| unchanged rerun | {res['unchanged_rerun_s']} | {res['unchanged_ratio']:.3f} x the first; {said} |",
-             f"| --bootstrap-samples 100 | {res['analysis_setting_changed_s']} | {said_analysis} |",
-             f"| killed at {res['killed_after_s']} s ({res['takes_done_when_killed']} takes done), resumed "
-             f"| {res['resume_s']} | {res['resume_says']} |", ""]
-    (HERE / f"{name}.md").write_text("\n".join(lines))
-    print("\n".join(lines))
+           "unchanged_ratio": round(unchanged / first, 3), "unchanged_says": said}
+    if not args.unchanged_only:
+        res.update({"analysis_setting_changed_s": round(analysis, 1),
+                    "analysis_says": said_analysis, **resumed})
+    name = "sample" if "sample_data" in str(args.session) else args.session.parent.name
+    path = HERE / "resume.json"
+    sections = json.loads(path.read_text()) if path.exists() else {}
+    sections[name] = res
+    path.write_text(json.dumps(sections, indent=2) + "\n")
+    md = render(sections)
+    (HERE / "resume.md").write_text(md)
+    print(md)
+
+
+def render(sections: dict) -> str:
+    """The page: one table per session."""
+    lines = ["# mocap run: reuse and resume", "",
+             "`python benchmarks/resume.py` (the committed sample session) or "
+             "`python benchmarks/resume.py --session benchmarks/cache/paper/session` (the paper "
+             "preset, made by `benchmarks/run.py`; `--unchanged-only` runs only the first two). "
+             "Wall times of whole `mocap run` processes, interpreter start and imports included. "
+             "Target: an unchanged rerun at most 1/10 of the first run.", ""]
+    for res in sections.values():
+        session = Path(res["session"])
+        if session.is_relative_to(HERE.parent):
+            session = session.relative_to(HERE.parent)
+        lines += [f"## `{session}` ({res['face_takes']} face takes; {res['date']}, {res['machine']})",
+                  "", "| run | seconds | |", "|---|---|---|",
+                  f"| first | {res['first_run_s']} | |",
+                  f"| unchanged rerun | {res['unchanged_rerun_s']} | {res['unchanged_ratio']:.3f} x "
+                  f"the first; {res['unchanged_says']} |"]
+        if "analysis_setting_changed_s" in res:
+            lines += [f"| --bootstrap-samples 100 | {res['analysis_setting_changed_s']} | "
+                      f"{res['analysis_says']} |",
+                      f"| killed at {res['killed_after_s']} s ({res['takes_done_when_killed']} takes "
+                      f"done), resumed | {res['resume_s']} | {res['resume_says']} |"]
+        lines.append("")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -424,16 +424,19 @@ def main() -> int:
     results_path.write_text(json.dumps(results, indent=2) + "\n")
     lines = ["# Benchmarks (paper preset)", "",
              f"Machine: {results['machine']['cpus']} CPUs, Python {results['machine']['python']}.", "",
-             "| stage | seconds | peak memory (GB) | target | details |", "|---|---|---|---|---|"]
+             "`python benchmarks/run.py` runs every stage; `--stages a,b` runs those and keeps the "
+             "other rows (each row's date says when it ran).", "",
+             "| stage | date | seconds | peak memory (GB) | target | details |",
+             "|---|---|---|---|---|---|"]
     for name, info in results.get("stages", {}).items():
         details = ", ".join(f"{k}={v}" for k, v in info.items()
                             if k not in ("seconds", "peak_gb", "targets", "date"))
-        lines.append(f"| {name} | {info['seconds']} | {info['peak_gb']} | {info['targets']} | {details} |")
+        lines.append(f"| {name} | {info.get('date', '')} | {info['seconds']} | {info['peak_gb']} | {info['targets']} | {details} |")
     lines += ["", f"{results['machine']['cpus']} CPUs; `load_average_1min` is the machine's load when "
               "the stage ran (above the CPU count, other jobs shared the machine and wall times "
               "are longer than on a quiet one; the CPU-second figures, `*_per_cpu_s` and `cpu_*`, "
               "are not affected). "
-              "Profiles of `mocap run` before and after the performance work: `profile.md`."]
+              "Where `mocap run` spends its time: `profile.md`; `mocap discrepancy`: `discrepancy_profile.md`."]
     (HERE / "results.md").write_text("\n".join(lines) + "\n")
     return 0
 
