@@ -70,7 +70,11 @@ def main() -> None:
             resumed = killed_then_resumed(args.session, work / "killed", n_takes)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    res = {"session": str(args.session), "machine": f"{platform.node()} ({os.cpu_count()} cores)",
+    session = args.session.resolve()
+    if session.is_relative_to(HERE.parent):
+        session = session.relative_to(HERE.parent)
+    res = {"session": str(session), "load_average_1min": round(os.getloadavg()[0], 1),
+           "machine": f"{platform.node()} ({os.cpu_count()} cores)",
            "date": time.strftime("%Y-%m-%d %H:%M"), "face_takes": n_takes,
            "first_run_s": round(first, 1), "unchanged_rerun_s": round(unchanged, 1),
            "unchanged_ratio": round(unchanged / first, 3), "unchanged_says": said}
@@ -99,7 +103,9 @@ def render(sections: dict) -> str:
         session = Path(res["session"])
         if session.is_relative_to(HERE.parent):
             session = session.relative_to(HERE.parent)
-        lines += [f"## `{session}` ({res['face_takes']} face takes; {res['date']}, {res['machine']})",
+        load = f", load {res['load_average_1min']}" if "load_average_1min" in res else ""
+        lines += [f"## `{session}` ({res['face_takes']} face takes; {res['date']}, {res['machine']}"
+                  f"{load})",
                   "", "| run | seconds | |", "|---|---|---|",
                   f"| first | {res['first_run_s']} | |",
                   f"| unchanged rerun | {res['unchanged_rerun_s']} | {res['unchanged_ratio']:.3f} x "
