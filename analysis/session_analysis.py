@@ -156,8 +156,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         with too few still frames.
     noise_cov_mm2 : optional (M, 3, 3) per-marker noise covariance at rest: the fallback
         preferred over ``noise_mm``.
-    jobs : DUs analysed at once, on threads (the same results in any order; the paper preset's
-        16 DUs: 7.5 -> 4.1-4.3 s on 2).
+    jobs : DUs analysed at once, on threads (the same results in any order).
     """
     prop_rows, lin_rows, marker_rows = [], [], []
     du_props, papers, keeps, fitted, fields = {}, {}, {}, {}, {}

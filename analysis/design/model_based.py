@@ -1,5 +1,5 @@
-"""Motion design through the identified face model (issue #11): commands that make the markers
-follow a plan, found by optimising the command sequence through the whole model.
+"""Motion design through the identified face model: commands that make the markers follow a
+plan, found by optimising the command sequence through the whole model.
 
 The paper designs commands by inverting full-sweep sigmoids (:func:`mocap.analysis.design.inverse_response.paper_design`):
 it knows nothing of reversals inside the range (minor loops), actuator dynamics (lag, dead time,
@@ -35,11 +35,9 @@ The markers' mean follows the plan (what the evaluation measures); their spread 
 mostly beyond any command, and with several DUs decides how they share the work. That share
 matters even though only the mean is scored: the evaluation normalises each marker by its own
 largest displacement in the take, so a DU driven past its share for a moment and backed off
-later (the mean held by another DU) leaves its markers below 1 for the rest of the take. With a
-weak spread term (0.05) the search traded work between DUs at the end of a fast rise (DU 7 at
-207, then 45; its markers held at 0.95 of their peak): plan E on a Bouc-Wen bowed face with a
-hidden second-order lag (0.08 s) tracked at 0.37 of the paper method's RMS; with 0.2, 0.11
-(plan A 0.18 either way; benchmarks/design_sweep.md).
+later (the mean held by another DU) leaves its markers below 1 for the rest of the take. A weak
+spread term lets the search trade work between DUs at the end of a fast rise (one DU driven high,
+then backed off, its markers held below their peak), hence ``spread_weight`` 0.2.
 
 The model's state is stepped exactly between command steps: a command held over a step drives
 the actuator monotonically (first-order lag: a(t) = c + (a0 - c) exp(-t / tau)), so every
@@ -64,13 +62,11 @@ delta_m read without the bias of noise (:func:`debiased_delta`) and w'_m the des
 times each marker's signal to noise; the commands are then designed again through the model.
 The signal-to-noise weights keep the small markers' noise out, but a mean in other weights than
 the design's is another mean: the markers differ in timing and path, so it learns another error
-(on a Preisach off-chord face, plan A with 0.03 mm noise, refinement went 0.209 -> 0.23 of the
-paper method's RMS while noise-free plays reached 0.19). The model's prediction of the played
+and a refinement from noisy takes would stop short of the noise-free one. The model's prediction of the played
 commands is therefore used as a control variate: its error against the plan is taken in the
 design's weights (noise-free) and only the model's error, delta_m - prediction_m, which is far
-more alike across markers, is read from the noisy take in the signal-to-noise weights (the same
-case: 0.195 after one play, 0.19-0.194 after more, as noise-free; noise-free plays are unchanged,
-the two weights being equal there).
+more alike across markers, is read from the noisy take in the signal-to-noise weights (on
+noise-free plays the two weights are equal and this is the plain update).
 
 Times in s, commands in command units (integers 0..255), displacements in mm; a reference is
 dimensionless (0 at rest, 1 at the plan's full motion).
@@ -582,12 +578,9 @@ def default_preview(model: FaceModel) -> int:
 
     A candidate held over the next two steps and scored on both is what a lagging actuator
     needs: its command shows in the markers mostly after the step it is sent in, and the greedy
-    pass drives it as if it did not (overshooting into the next step; on a straight-path face
-    with a second-order lag, which the model's first-order one only approximates, plan E played
-    at 0.36 of the paper method's RMS greedy, 0.31 with the preview). On a face that responds
+    pass drives it as if it did not (overshooting into the next step). On a face that responds
     at once the same preview holds each command over a step it does not belong to, half a step
-    behind a rising plan: it doubles the RMS (plan A on the PI straight face without effects
-    0.32 -> 0.60). benchmarks/design_sweep.md has both on every base-face family.
+    behind a rising plan, and about doubles the tracking RMS.
     """
     dynamic = model.effect("lag") is not None or model.effect("deadtime") is not None
     return 2 if dynamic else 1
@@ -650,8 +643,8 @@ def _design(pb: _Problem, times: np.ndarray, ref: Reference, horizon: int, previ
                        time.perf_counter() - t0, ref), causal
 
 
-# hold levels tried by design_plan, in units of hold_lift() (1.5 was tried too: on PI straight,
-# Preisach straight and PI bowed faces, plans A-E, the model never chose it)
+# hold levels design_plan designs for, in units of hold_lift() (a larger lift, 1.5, is not the
+# model's choice on any plan A-E of the straight and bowed faces)
 HOLD_LIFTS = (0.0, 0.5, 1.0)
 
 
@@ -697,9 +690,8 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
     evaluated take), and the design whose prediction the evaluation scores best against the plan
     (:func:`evaluate_design`, 0.5 (forward + backward)) is returned, with ``hold_level`` and the
     ``reference`` it was designed for (a refinement starts from that reference). The choice is
-    the model's: on a face whose markers move on straight lines it lifts the hold (plan A on the
-    PI straight face: 0.335 -> 0.322 of the paper method's RMS played), on a bowed one it keeps
-    it at 1 (plan B on the PI bowed face: 0.058 with the hold at 1, 0.085 lifted by 1). A plan
+    the model's: on a face whose markers move on straight lines it lifts the hold, on a bowed one
+    (whose |d| can pass its final value during the rise) it keeps it at 1. A plan
     without a hold, or ``lifts=(0,)``, is :func:`design_commands` itself.
 
     Every level's design is exactly :func:`design_commands`' for the plan with that hold, but the
@@ -782,10 +774,8 @@ def debiased_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6,
 
     As :func:`mocap.analysis.design.evaluation.realized_delta` (which noise-free data give exactly), with
     the three ways white noise of s_m mm per axis biases it removed, because a refinement learns
-    every bias as a tracking error (measured on a 20-marker Preisach off-chord face playing plan
-    A, 0.03 mm, 30 noise draws: the markers' mean error of the plain reading -0.011 on the hold and
-    +0.008 after the motion, of this one -0.0004 to -0.003; the paper method's RMS on that plan is
-    0.065, so the refinement's target 1/5 of it is 0.013):
+    every bias as a tracking error, and at 0.03 mm of noise the plain reading's bias (about 0.01
+    of the normalised displacement) is of the order of the refinement's target:
 
     - |d|^2 of noise is positive: the length is sqrt(max(|d|^2 - 3 s_m^2 (1 + 1 / n_rest), 0))
       (the rest reference averages n_rest frames);
@@ -1026,7 +1016,7 @@ def tracking_floor(ref: Reference, command_times_s: np.ndarray, fps: float,
     lowest displacement after the motion is ``set_level`` (mean normalised displacement at
     command 0 after the full motion: the set a hysteresis leaves; 0 for none).
 
-    A frame at t is driven by the last row at or before t (FORMAT.md), so a face without dynamics
+    A frame at t is driven by the last row at or before t (the session format's command files), so a face without dynamics
     holds every marker's normalised displacement, and their mean, constant between two rows: the
     best constant over a step is the plan's mean over that step's frames, and over the fall no
     lower than the set (on the way down a play-type hysteresis is lowest at command 0). The RMS

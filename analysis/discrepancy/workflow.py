@@ -100,14 +100,10 @@ class DiscrepancySettings:
         them), it removes at least ``local_explained`` of the excess over the noise floor and
         ``local_gain`` x the noise floor from the RMS (a stick-slip dead band: on the rows where
         it holds a DU's actuator, :func:`hold_gain`). An effect that acts in a few places (a dead
-        band at reversals) is plain there and lost in the session's RMS. Scored against the
-        base, a candidate's extra polish of the curves was local too (on a Preisach face with
-        nothing hidden a lag of 0 s explained 69-77 % of the excess on the 326-717 residual
-        vectors it moved), so it was off; scored against its own null (:func:`cv_candidate`) it
-        named nothing on 15 faces with nothing hidden (every family; benchmarks/
-        cross_family_sweep_session9.md) and named the stick-slip dead band on two 4-DU faces
-        where the session's RMS did not (Bouc-Wen bowed, branch play straight). The numbers are
-        reported in every candidate's evidence either way.
+        band at reversals) is plain there and lost in the session's RMS. It is safe only
+        against the candidate's own null (:func:`cv_candidate`): against the base, a
+        candidate's extra polish of the curves is local too. The numbers are reported in every
+        candidate's evidence either way.
     max_steps : effects to add at most.
     jobs : processes over the base fits (each fold, all takes) and the candidates (spawned;
         1 runs in this process). The results do not depend on it.
@@ -737,8 +733,7 @@ def run_discrepancy(prep: Prepared, settings: DiscrepancySettings = DiscrepancyS
     try:
         # the base on each fold (cv_base) and on all takes, side by side with jobs > 1: the
         # folds first, which the candidates' screens need; the fit on all takes, needed only
-        # once a candidate is judged, runs beside the first screens (the paper preset's base
-        # phase 128 -> 76 s, the workflow 376 -> 369 s, the whole fit going first before)
+        # once a candidate is judged, runs beside the first screens
         say(f"fitting the base model ({'+'.join(settings.base) or 'static'}) on all "
             f"{len(data.takes)} takes and on each fold ({_on(settings.jobs, 3)})")
         *folds, whole = runner.base_fits(effects, [fold_takes(data, 0), fold_takes(data, 1),
@@ -814,9 +809,9 @@ def _steps(data, prep, settings, current, res, stages, residual_sets, stage_mode
               and passes(e, settings)]
         # the best candidate whose parameter, identified again on all takes, is still plausible
         # (the folds can each find a value the whole session does not support: a dead time
-        # added after a second-order lag read 0 s on all takes and was named; a stick-slip band
-        # read 3.28 on a face with a play of 12 after its coupling, any width in 0-6.56 fitting
-        # all takes alike, and kept the dead-band step from reading the play)
+        # after a second-order lag that reads 0 s on all takes; a stick-slip band whose widths
+        # that fit all takes alike reach 0, which would keep the dead-band step from reading a
+        # play)
         t_c = time.perf_counter()
         all_takes = list(range(len(data.takes)))
         stage_models[0] = _settle(stage_models[0])
@@ -1061,11 +1056,8 @@ def dead_band_step(data: ModelData, model: FaceModel, current: CVFit, floor: flo
     polish only: the walk's extra iterations at the narrower plays are not repeated at 0), in
     total or on the median take. The total alone is one take's verdict when a fold has not seen
     a DU's minor loop: both fold models extrapolate that loop poorly, and whichever does worse
-    outweighs every other take (a Bouc-Wen face with a band of 12, off-chord paths: edge 12.85,
-    7 held-out takes better with the play by more than 1 % and 3 worse, the median take's SSE
-    x 0.999, but DU 4's minor loop 46 -> 132 mm^2, four times the noise either way, and the
-    total 20 % worse). A play the face has not got stops motion after every reversal, in every
-    take.
+    outweighs every other take; the median take's ratio is not swayed by it. A play the face
+    has not got stops motion after every reversal, in every take.
     Returns (Step or None, its CVFit, the alternative, the model with the play, the evidence
     item or None where the step did not apply)."""
     cls = CATALOGUE["backlash"]

@@ -58,9 +58,9 @@ from mocap.analysis.model.play_kernel import pi_logistic_from_table, play_table
 from mocap.core.schedules import sample_commands
 
 OVERSAMPLE = 4
-R_MAX = 80.0  # largest play width r, command units (the table holds half-widths up to 2 r); the
-#               simulator's DU 4 has markers with loop half-widths of 77 (48 cut them: a
-#               branch-play face's held-out RMS 1.69 -> 1.22 x the noise floor with 80)
+R_MAX = 80.0  # largest play width r, command units (the table holds half-widths up to 2 r): the
+#               simulator's DU 4 has markers with loop half-widths of 77; a narrower bound
+#               leaves their loops to a spurious backlash
 # the PI density's grid: play half-widths / r; the paper-model's equal plays sit on every second
 DENSITY_FRACTIONS = np.round(np.arange(0.0, 2.0001, 0.25), 6)  # (F,)
 PI_BRANCH = np.array([1.0, 0.0])  # (mix, kappa) of the PI form: one sigmoid of the PI output

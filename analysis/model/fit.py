@@ -377,11 +377,9 @@ def _fit_pairs_and_shifts(data: ModelData, model: FaceModel, takes, shifting: bo
     the shifts as they stand, and the multi-DU takes' shifts at 0 (a take's shift is the face's
     trial-to-trial jitter, zero-mean). The shifts as they stand were identified without the pair
     terms and hold part of the coupling (a bias shift lowers a DU's response as a loss does),
-    and the alternation only creeps away from there: on a 4-DU Preisach face with straight paths
-    and the simulator's product coupling (kappa 0.35) the shifts of a 3-DU smile stayed at -1,
-    21 and 8 command units for a truth of 0.1, 3.8 and -0.2, the smiles fitted in-sample at 1.23
-    and 1.48 x the noise floor; from 0 at 1.01 and 1.07 x, the shifts at 1.6, 3.7 and 3.1, and
-    the training SSE 395.3 -> 363.5 mm^2. The start with the lower training SSE is kept."""
+    and the alternation only creeps away from there (a 3-DU smile's shifts can stay tens of
+    command units off where the face draws a few). The start with the lower training SSE is
+    kept."""
     if not shifting:
         _fit_pairs(data, model, takes)
         return model
@@ -985,8 +983,7 @@ def coupling_kappa(data: ModelData, model: FaceModel, takes) -> float:
     parabola), with the weighting that fits better (``model.info["coupling_law"]``). Neither the
     pair vectors nor the model's drive enter: the model's y is the face's drive only up to a
     reparametrisation its paths absorb on single-DU takes, and a loss in y is a loss in travel
-    only where the two agree (the law refitted in y read 0.204 for 0.35 on a branch-play face
-    with straight paths; this reading 0.35, benchmarks/coupling_reading.md). Where no multi-DU
+    only where the two agree (accuracy of both readings: benchmarks/coupling_reading.md). Where no multi-DU
     take holds its DUs at full command: :func:`law_kappa`."""
     multi = multi_du_takes(data, takes)
     top = top_commands(data)

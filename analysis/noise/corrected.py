@@ -26,8 +26,10 @@ excursion, and the markers' independent errors add to the variance over markers.
    takes' rest frames (``pooled_rest``: the session analysis passes the other DUs' response
    takes, the face at rest before each);
 2. the noise-free chord |d_m(t)| estimated along the marker's own path: p = d . u (u the principal
-   direction, from the noise-corrected second moment) and the perpendicular part w(p) fitted as
-   a cubic in p (a bowed or S-shaped path); chord g = sign(p) sqrt(p^2 + |w(p) - w(0)|^2). The
+   direction, from the noise-corrected second moment) and the perpendicular part w fitted as a
+   cubic in p_s, p averaged over ``PATH_SMOOTH_S`` in time (a bowed or S-shaped path; a cubic in
+   the raw p is unstable where p's noise is a fair share of the travel or the path curls onto
+   its end point); chord g = sign(p) sqrt(p^2 + |w(p_s) - w(0)|^2) with the frame's own p. The
    perpendicular noise leaves (so |noise| adds no bias) and the remaining noise along the path
    has zero mean, also at rest (the sign keeps it so);
 3. max |d| as the mean of g over the hold at the top command once settled (``hold_frames``): no
@@ -49,33 +51,27 @@ excursion, and the markers' independent errors add to the variance over markers.
    variance estimate is more than ``SOFT_ROOT`` = 3 standard deviations of its own noise where
    the markers' true deltas are equal (``variance_noise_sd(..., at_zero_spread=True)``, the
    short box's, on the hold too) from 0, linear in it below. The threshold is a property of
-   the noise model, not of the realised deviations: computed from them it rose with each
-   frame's own noise and the roots' mean leaned low (-1.6 % of gamma on off-chord faces). On
-   the hold the long box cuts the variance's noise while the threshold, and so the root's
-   slope there, stay the short box's (face-to-face sd at 3 trials and 0.05 mm 4.1 -> 3.4 % on
-   off-chord faces, 4.6 -> 3.6 % on bowed ones, 40 faces of 60 markers). A root of a zero-mean
+   the noise model, not of the realised deviations (computed from them it would rise with each
+   frame's own noise and the roots' mean would lean low). On the hold the long box cuts the
+   variance's noise while the threshold, and so the root's slope there, stay the short box's.
+   A root of a zero-mean
    estimate is what costs the most: where the true spread is 0 (the hold, the rest) the signed root
    sign(v) sqrt(|v|) is unbiased but turns noise of sd tau into errors of sd ~0.9 sqrt(tau),
    and no smoothing helps (a longer box divides tau and the number of independent values
-   alike); linear below 3 tau the errors there are ~tau / sqrt(3 tau), still with mean 0 (on
-   3-trial takes at 0.05 mm with 60 markers the face-to-face sd fell from 9 to 6 % with the
-   take's own rest, from 7-8 to 4-5 % with the rest pooled over other takes). Clipping at 0 instead
-   would leave a positive bias of 0.4 sqrt(tau) per independent value;
+   alike); linear below 3 tau the errors there are ~tau / sqrt(3 tau), still with mean 0.
+   Clipping at 0 instead would leave a positive bias of 0.4 sqrt(tau) per independent value;
 6. finer resolutions where the spread stands well above their noise (``FINE_LEVELS_S``: a 0.025 s
    box and variance smoothing, then single frames). The 0.1 s box smooths away the spread between
    curves that step at different sub-step times (staircases: a marker with a dead time and no
-   lag jumps at its own frame within each command step; -1.6 % of gamma on noise-free off-chord
-   faces) and averaging the variance before its root inflates the root where the spread changes
-   within the window (+1.4 % on noise-free bowed faces): both are costs only where the spread is
+   lag jumps at its own frame within each command step), and averaging the variance before its
+   root inflates the root where the spread changes within the window: both are costs only where the spread is
    far above the noise, which is where the finer estimates can be afforded. Each finer level's
    root is blended over the coarser ones with a weight rising from 0 to 1 as the coarse variance
    goes from ``FINE_SNR`` = 2 to 5 standard deviations of the finer level's noise (never on
-   the hold). Noise-free faces: -1.6 -> +0.3 % (off-chord), +1.4 -> +0.1 % (bowed); 3 trials at
-   0.05 mm with the session's pooled rest, 30 faces of 60 markers: off-chord -3.5 -> -2.1 % on
-   average (worst face 9.9 -> 8.3 %), bowed +1.2 -> +0.4 %.
+   the hold).
    The mean over the schedule's frames floored at 0.
 
-Its limits (measured in benchmarks/index_monte_carlo.md and docs/indices.md): the rest reference
+Its limits (measured accuracy: docs/indices.md, benchmarks/index_monte_carlo.md): the rest reference
 (the frames before the first command step, 6 per trial in the paper's schedule, fix d = 0 for
 every later frame, so their error is a constant of each marker's curve that no averaging over
 time removes: its expected variance is subtracted, its realisation is not; pooling the other
@@ -85,7 +81,7 @@ the top: -1 to -3 % of gamma on 3-trial takes at 0.05 mm: E sqrt is at most ~0.4
 short of sqrt(V) for V in (0, 3 tau), and no odd function of the estimate does much better);
 the box, which smooths away part of the spread between curves that step at different sub-step
 times where the spread is too close to the noise for the finer levels (step 6; off-chord faces,
-whose markers have their own dead times and no lag, still read -2 % at 3 trials and 0.05 mm);
+whose markers have their own dead times and no lag, read low at 3 trials and 0.05 mm);
 and the skew of the variance's noise with few markers (a few small markers dominate it). Where
 the true spread is below the noise of the smallest markers' normalised curves the estimate is no
 better than 0 to 2 x the truth (docs/indices.md).
@@ -306,7 +302,7 @@ def path_chord(mean: np.ndarray, n_trials: np.ndarray, timing: ScheduleTiming, f
     dwp = sum(k * q[..., None] ** (k - 1) * coef[None, :, k] for k in range(1, PATH_DEGREE + 1))
     dwp = dwp / sc[None, :, None]
     W2 = np.sum(wp * wp, axis=-1)  # |w(q_s) - w(0)|^2, the path's perpendicular part squared
-    # the chord at the frame's own p (its noise along the path white and zero-mean, as before)
+    # the chord at the frame's own p (its noise along the path white and zero-mean)
     # with the path's perpendicular part at the smoothed one
     g2 = p * p + W2
     chord = np.sign(p) * np.sqrt(g2)
@@ -480,8 +476,7 @@ def variance_noise_sd(d: np.ndarray, nv: np.ndarray, box: int, smooth: int, *,
     null the soft root's threshold asks about). It depends on the noise model alone, not on the
     realised deviations, which carry the very noise the threshold judges: with them in, a frame
     whose noise came out high gets a higher threshold (a flatter root) and one whose noise came
-    out low a steeper one, and the mean of the roots leans low (-1.6 % of gamma on 3-trial
-    off-chord faces at 0.05 mm, benchmarks/index_monte_carlo.md)."""
+    out low a steeper one, and the mean of the roots leans low."""
     lags = np.arange(-(smooth - 1), smooth)
     pairs = smooth - np.abs(lags)
     rho = np.maximum(0.0, 1.0 - np.abs(lags) / max(box, 1))
@@ -533,9 +528,8 @@ def corrected_dyssynchrony(mean: np.ndarray, n_trials: np.ndarray, keep: np.ndar
                             at_zero_spread=True)
     # the settled hold's deltas are flat: every frame of it takes the long box, the box cut
     # at the hold's ends (there it averages the hold's frames on one side only, still far more
-    # than the short box: at 3 trials and 0.05 mm the face-to-face sd fell 3.6 -> 3.3 % on
-    # bowed faces and 3.5 -> 3.2 % on off-chord ones against the long box only where it fitted
-    # whole, with 0.5 s; 1 s: 3.0 and 3.2 %)
+    # than the short box; a box that had to fit whole would leave the hold's ends, where most
+    # of the hold's noise reaches gamma, to the short box)
     long = max(frames, int(round(hold_box_s * fps)))
     hold = hold_frames(n, timing, fps) & inside
     if long > frames and hold.any():

@@ -24,8 +24,8 @@ each marker's noise variance on its step mean subtracted from the variance over 
 r) / (p - r), with r the mean over the rest lead-in and p the mean over the plateau: to first
 order a step mean's error is mean_step(e) - (1 - delta) mean_rest(e) - delta mean_plateau(e) for
 white noise e on the curve (:func:`step_noise_factor`). So the rest reference's error weighs
-fully near rest and not at all on the plateau; subtracting it at full weight at every step (as
-an earlier version did) over-corrected, by 13-17 % where the true spread is small.
+fully near rest and not at all on the plateau; subtracting it at full weight at every step
+would over-correct, by 13-17 % where the true spread is small.
 
 The fits use ``delta_along`` when given (the displacement along each marker's principal
 direction, whose noise has zero mean), METHOD.md's |d| / max |d| otherwise.
