@@ -369,7 +369,7 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
         z = np.sum(r**2, axis=-1) / f_scale**2
         w = _loss_weights(z, loss)[1][..., None, None]  # (o, w, 1, 1)
         # per sighting, the (w, a) rows stacked: batched matrix products (einsum's generic
-        # loop was 8 x slower here), then summed per camera and per frame
+        # loop is about 8 x slower here), then summed per camera and per frame
         n_obs = r.shape[0]
         Jc2 = Jc.reshape(n_obs, -1, N_CAM)
         Jf2 = Jf.reshape(n_obs, -1, N_FRAME)

@@ -44,8 +44,8 @@ def write_parquet(df, path: str | os.PathLike) -> Path:
     """Write a pandas DataFrame to Parquet (zstd) atomically (no index); return the path.
 
     Only the columns that are not floating point are dictionary-encoded: measured coordinates
-    rarely repeat, and trying a dictionary on them was 3/4 of the write time (a paper take's
-    trajectories: 2.4 x faster, 20 % smaller). The data read back are the same.
+    rarely repeat, and trying a dictionary on them would be most of the write time (and the file
+    larger). The data read back are the same.
     """
     with atomic_path(path) as tmp:
         df.to_parquet(tmp, index=False, compression="zstd", use_dictionary=dictionary_columns(df))

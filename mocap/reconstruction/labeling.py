@@ -275,8 +275,8 @@ def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
 
 def trajectories_table(labeled: LabeledTake, names):
     """:func:`trajectories_frame` as an Arrow table, for writing: the marker column decoded from
-    a dictionary of the names in Arrow (no per-row Python strings: a paper take's table and
-    Parquet file 51-61 -> 32-41 ms). Read back with pandas it is the same frame."""
+    a dictionary of the names in Arrow (no per-row Python strings). Read back with pandas it is
+    the same frame."""
     import pyarrow as pa
 
     n_frames, M, _ = labeled.X.shape

@@ -27,9 +27,9 @@ The true response of a take is computed in three stages (``mocap.simulate.motion
 With a face family whose paths are not straight, ``sum_n y_n D_nm`` reads ``sum_n p_nm(y_n)``,
 the family's path (``families``). ``form="alt"`` (``--effect-form alt``) replaces each equation
 by a second form the analysis model does not share, with the same parameter and unit
-(``effects_alt``). ``form="alt2"`` is a third form where the model has since grown the alt
-form's equation (coupling: the analysis now fits the uniform law of the alt form, so an honest
-test of it needs a law it does not have); effects without a third form use their alt form.
+(``effects_alt``). ``form="alt2"`` is a third form where the analysis model shares the alt
+form's equation (coupling: the analysis fits the uniform law of the alt form, so an honest test
+of it needs a law it does not have); effects without a third form use their alt form.
 """
 
 from __future__ import annotations

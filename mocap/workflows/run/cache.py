@@ -240,9 +240,8 @@ def _save_pickle(path: Path, key: str, value: Any) -> None:
 def write_keyed_parquet(df, path: Path, key: str) -> Path:
     """``df`` (a DataFrame or an Arrow table) as Parquet (zstd) written atomically, its schema
     metadata holding ``key`` (none for an empty key); only the columns that are not floating
-    point dictionary-encoded, as :func:`mocap.core.atomic.write_parquet` writes (a paper take's
-    trajectories: 81 -> 25 ms, 20 % smaller; profiled, the run's main process spent 21 s of the
-    reconstruction's 62 writing its 230 takes)."""
+    point dictionary-encoded, as :func:`mocap.core.atomic.write_parquet` writes (a dictionary
+    tried on the coordinates, which rarely repeat, would cost most of the write time)."""
     import pyarrow as pa
 
     table = df if isinstance(df, pa.Table) else pa.Table.from_pandas(df, preserve_index=False)
