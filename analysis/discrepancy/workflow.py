@@ -936,10 +936,10 @@ def fold_hull(prof, cls, fold_intervals: list):
     disagree, and the widths the data allow are the hull of the folds' intervals and that
     minimum. Returns ``prof`` with that interval, its centre as the value (the model's band set
     to it, as :func:`mocap.analysis.model.fit.profile_effect` does for a plateau) and the
-    interval's width as its resolution; ``prof`` unchanged otherwise. On the sweep's Preisach
-    face with straight paths, the simulator's product coupling and a stick-slip band of 12
-    (seed 2), after the coupling: all takes 7.0 (SSE 363.23 mm^2, 363.31 from 7.25 to 9.4, the
-    fits reproducible to 0.05), the folds flat over 6.56-12.51 and 6.50-9.49."""
+    interval's width as its resolution; ``prof`` unchanged otherwise. Example: a Preisach face
+    with straight paths, a coupling and a stick-slip band of 12, after the coupling: all takes
+    prefer 7.0 by less than the fits' reproducibility, the folds are flat over 6.56-12.51 and
+    6.50-9.49, and the band is reported as 9.5 in 6.50-12.51."""
     ivs = [iv for iv in fold_intervals if iv is not None]
     if not cls.command_grid or prof.interval is not None or not ivs:
         return prof

@@ -43,9 +43,8 @@ from mocap.analysis.model.play_kernel import H_STEP, pi_logistic_from_table
 BETA_STARTS = (60.0, 128.0, 196.0)
 # where a cold fit starts the branch parameters (mix, kappa): the PI form (mix = 1, where their
 # first derivatives vanish until the density moves) and off it (0.75), so that a Gauss-Newton
-# step can move them either way; the better training fit is kept (from 0.75 alone: 1.03 x the
-# noise floor on a PI face, 1.08 on a Preisach one; from 0.5 the PI face stayed at mix
-# 0.53-0.64, 1.11 x; the fit is not convex in them)
+# step can move them either way; the better training fit is kept (the fit is not convex in
+# them: from one start alone a PI face can stay at a mix well below 1)
 BRANCH_STARTS = (np.array([1.0, 0.0]), np.array([0.75, 0.0]))
 BRANCH_START = BRANCH_STARTS[1]
 
@@ -605,8 +604,9 @@ def _update_density(data: ModelData, model: FaceModel, takes):
     share the skin's hysteresis in units of each curve's own width r: such a DU's density step
     is pulled towards the density of the DUs with minor loops (their Gauss-Newton problems
     summed, each normalised to its mean curvature) by SHARED_PULL x its own mean curvature; a
-    DU with minor loops of its own keeps its own. On a branch-play face (no hidden effect) the
-    held-out minor-loop take of a DU went from 2.5 to about 1.5 x the noise floor.
+    DU with minor loops of its own keeps its own (without the pull, a DU's full sweeps spread its
+    density to hold per-marker branch asymmetries, which predicts minor loops that are not flat
+    after a reversal).
 
     Returns (density (N, F), branch (N, 2))."""
     F = DENSITY_FRACTIONS.size
@@ -1033,8 +1033,8 @@ def law_kappa(data: ModelData, model: FaceModel, multi) -> float:
     DU's relative pull (|D_n'm| / max_m |D_n'm|) or o = 1 (the same loss at every marker); the
     law that fits better gives kappa. Grid then parabola. The fallback of :func:`coupling_kappa`
     where no multi-DU take holds its DUs at full command: the model's y is the face's drive only
-    up to a reparametrisation its paths absorb, and the reading follows it (on a branch-play face
-    with straight paths it read 0.204 for 0.35)."""
+    up to a reparametrisation its paths absorb, and the reading follows it (up to about 40 % off
+    the kappa in travel: benchmarks/coupling_reading.md)."""
     from mocap.analysis.model.effects import Coupling
 
     plain = without_coupling(model)
@@ -1135,9 +1135,8 @@ def profile_effect(data: ModelData, base: FaceModel, effect: Effect, takes,
                if fixed is not None and fixed.shifts_takes and cls.stage == "interact" else [])
     # a rough profile (a dead time: each value re-times every ramp; from the base, which absorbed
     # the missing delay in its density and biases, five iterations stop short, and the profile
-    # read SSE 389 at 0.025 s, 487 at 0.026 s and 464 at 0.05 s on a Bouc-Wen face whose
-    # 0.06 s dead time reads 197 when approached step by step): each value warm-starts from the
-    # nearest value tried, the grid ascending
+    # from the base has local minima far from the delay that a step-by-step approach finds):
+    # each value warm-starts from the nearest value tried, the grid ascending
     cont = fixed is None and cls.continuation
 
     def point(v: float, warm: FaceModel, rounds: int | None = inner_rounds) -> FaceModel:
