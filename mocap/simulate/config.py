@@ -23,8 +23,8 @@ class SimConfig:
     du_ids : the face's DUs.  n_markers : markers on the half-face.  n_trials : response trials.
     noise : detection imperfections of every camera.
     degrade_camera / degraded : one camera with worse detections (audit tests).
-    face_family : the base face's family (``mocap.simulate.families``): ``pi`` (default, the
-        face of earlier versions), one of ``FAMILIES`` (``HYSTERESIS-PATH``) or ``random`` (one
+    face_family : the base face's family (``mocap.simulate.families``): ``pi`` (default: PI
+        hysteresis, straight paths), one of ``FAMILIES`` (``HYSTERESIS-PATH``) or ``random`` (one
         of ``FAMILIES`` drawn from ``seed``, recorded in the truth only).
     effect : the hidden effect applied to the true face.
     labeled : write labeled 3D takes (no cameras) instead of 2D blobs.

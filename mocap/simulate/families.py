@@ -4,7 +4,7 @@ A family is a hysteresis operator and a path shape, plus (for every family but `
 per-trial common shift of the branch biases and a per-marker scatter of gains, biases and loop
 widths on top of the base face. Names are ``HYSTERESIS-PATH`` over the product of
 ``HYSTERESES`` x ``PATHS`` (``FAMILIES``: 12 names, what a cross-family sweep iterates), plus
-``pi``, today's face (the default: exactly the face of earlier versions, no trial shift, no extra
+``pi`` (the default: PI hysteresis on straight paths, no trial shift, no extra
 scatter), and ``random`` (one of ``FAMILIES`` drawn from the seed; the draw is written to the truth
 only). Per DU n and marker m, with the take's actuator input a_n(t) (command units) and bias shift
 s (the trial's common shift plus any drift; command units)::

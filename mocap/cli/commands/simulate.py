@@ -42,8 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "effect's default strength)")
     p.add_argument("--face-family", default=None, choices=FAMILY_NAMES, metavar="NAME",
                    help="the base face's family: hysteresis-path among "
-                        f"{', '.join(FAMILY_NAMES[1:-1])}; pi (default: the face of earlier "
-                        "versions); random (drawn from the seed, named in truth/ only)")
+                        f"{', '.join(FAMILY_NAMES[1:-1])}; pi (default: PI hysteresis, "
+                        "straight paths); random (drawn from the seed, named in truth/ only)")
     p.add_argument("--effect-form", choices=["model", "alt", "alt2"], default="model",
                    help="the hidden effects' equations: model (default); alt, a second form "
                         "with the same parameters that the analysis model does not share; alt2, "
