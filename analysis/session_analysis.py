@@ -1,4 +1,4 @@
-"""All of METHOD.md's analyses for one session, from the trial-averaged responses.
+"""All of the paper's analyses for one session, from the trial-averaged responses.
 
 Pure computation: takes the reconstruction's results, returns tables and fitted models; the
 pipeline writes them (properties.csv, linearity.csv, marker_properties.csv, figures).

@@ -1,4 +1,4 @@
-"""Evaluation of a designed motion against its plan (METHOD.md, "Motion design").
+"""Evaluation of a designed motion against its plan (the paper, "Motion design").
 
 The realized normalised displacement of marker m is |d_m(t)| / max_t |d_m(t)| over the take
 (the maximum on the displacement smoothed over ``smooth_frames``), d_m(t) from the mean position

@@ -408,7 +408,7 @@ def marker_weights(model: FaceModel, dus, markers=None, min_scale_mm: float = 0.
 class ModelDesign:
     """A designed command file and what the model predicts of it.
 
-    rows : FORMAT.md command rows (time_s, du, command), integers 0..255.
+    rows : docs/format.md command rows (time_s, du, command), integers 0..255.
     t_s : (S,) the cost points, s.  predicted : (S, M) the model's normalised displacement there.
     target : (S, M) the reference there.  cost : the final cost per point (see ``spread_weight``).
     seconds : time spent.
@@ -752,7 +752,7 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
 
 
 def commands_matrix(rows: pd.DataFrame, dus, n_frames: int, fps: float) -> np.ndarray:
-    """Commands (n_frames, n_dus) of ``rows`` at the frames (FORMAT.md sampling)."""
+    """Commands (n_frames, n_dus) of ``rows`` at the frames (docs/format.md sampling)."""
     from mocap.core.schedules import sample_commands
 
     return sample_commands(rows, list(dus), np.arange(n_frames) / fps)

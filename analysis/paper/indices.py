@@ -1,4 +1,4 @@
-"""The paper's static-response indices computed literally (METHOD.md, "Static response").
+"""The paper's static-response indices computed literally (its "Static response" section).
 
 This module is the paper's recipe and nothing else: no noise handling, no smoothing. Its numbers
 are what properties.csv reports under the plain names ``alpha_fwd, beta_fwd, alpha_bwd, beta_bwd,
