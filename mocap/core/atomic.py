@@ -1,6 +1,6 @@
 """Atomic file writes: a temporary name beside the target, then ``os.replace``.
 
-An interrupted run never leaves a half-written file under its final name (OUTPUTS.md).
+An interrupted run never leaves a half-written file under its final name (docs/outputs.md).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def write_csv(df, path: str | os.PathLike, decimals: int | None = None) -> Path:
     """Write a pandas DataFrame to CSV atomically (no index, no quoting); return the path.
 
     Float columns are rounded to ``decimals`` when given and written in their shortest exact
-    form; NaN is written as an empty cell (FORMAT.md's "not seen"). Uses pyarrow's CSV writer,
+    form; NaN is written as an empty cell (docs/format.md's "not seen"). Uses pyarrow's CSV writer,
     about 20 x faster than pandas' for millions of rows.
     """
     import numpy as np

@@ -1,4 +1,4 @@
-"""The session loader: a capture session directory (FORMAT.md, ``mocap-session/1``) as objects.
+"""The session loader: a capture session directory (docs/format.md, ``mocap-session/1``) as objects.
 
 A session directory holds ``session.toml`` (the manifest), an optional ``markers.csv`` (the
 marker template) and one file per take. :func:`load_session` reads and validates the manifest,
@@ -105,7 +105,7 @@ _NULL_ARRAY = pa.array(sorted(_NULL_TOKENS), pa.string())
 
 
 class SessionError(Exception):
-    """A session violates the input contract (FORMAT.md).
+    """A session violates the input contract (docs/format.md).
 
     The message names the file, the row or manifest key, and what was expected versus found.
     """
@@ -348,7 +348,7 @@ def load_session(path: str | Path) -> Session:
     Raises
     ------
     SessionError
-        When the manifest or a take header violates the contract (FORMAT.md).
+        When the manifest or a take header violates the contract (docs/format.md).
     """
     root = Path(path).resolve()
     if not root.is_dir():
@@ -665,7 +665,7 @@ def _parse_takes(doc, root: Path, du_ids: set[int], notes) -> tuple[TakeInfo, ..
 
 def _contained(root: Path, value: str, key: str) -> Path:
     """``root / value`` for a manifest path that is relative and stays inside the session folder
-    once links are resolved (FORMAT.md); otherwise a SessionError naming ``key``."""
+    once links are resolved (docs/format.md); otherwise a SessionError naming ``key``."""
     if "\0" in value:
         raise SessionError(f"{MANIFEST}: {key}: {_show(value)} holds a NUL character; expected a "
                            "path relative to the session folder")

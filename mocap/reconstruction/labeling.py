@@ -252,7 +252,7 @@ def fill_gaps(X: np.ndarray, max_frames: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _trajectory_columns(labeled: LabeledTake, marker) -> dict:
-    """OUTPUTS.md's columns in order, ``marker`` the (n_frames * M,) marker column given."""
+    """docs/outputs.md's columns in order, ``marker`` the (n_frames * M,) marker column given."""
     n_frames, M, _ = labeled.X.shape
     return {
         "frame": np.repeat(np.arange(n_frames, dtype=np.int64), M),
@@ -267,7 +267,8 @@ def _trajectory_columns(labeled: LabeledTake, marker) -> dict:
 
 
 def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
-    """Long table per OUTPUTS.md: frame, marker, x, y, z, n_cameras, residual_px, interpolated."""
+    """Long table per docs/outputs.md: frame, marker, x, y, z, n_cameras, residual_px,
+    interpolated."""
     n_frames = labeled.X.shape[0]
     return pd.DataFrame(_trajectory_columns(labeled, np.tile(np.asarray(names, dtype=object),
                                                              n_frames)))

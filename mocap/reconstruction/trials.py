@@ -1,4 +1,4 @@
-"""Trials, noise floor and rejections (METHOD.md, "Experiment").
+"""Trials, noise floor and rejections (the paper, "Experiment").
 
 Conventions: trajectories are dense arrays (n_frames, n_markers, 3) in mm with NaN where a
 marker was not reconstructed; the first axis is time.
@@ -48,7 +48,7 @@ class TrialAverage:
 
     command : (n_frames,) the DU's command; mean : (n_frames, M, 3) mm; spread_mm : (n_frames,
     M); n_trials : (n_frames, M) int; rest_mm : (M, 3) v(0); displacement_mm : (n_frames, M);
-    delta : (n_frames, M) METHOD.md's |d| / max |d|; delta_along : the same along each marker's
+    delta : (n_frames, M) the paper's |d| / max |d|; delta_along : the same along each marker's
     principal direction (noise-unbiased, ``mocap.reconstruction.displacement.normalized_along``); trials :
     (n_trials, n_frames, M, 3) the aligned trials; takes: names.
     """
@@ -131,7 +131,7 @@ def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.nd
 
 
 def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:
-    """Rows (du, frame, marker) per OUTPUTS.md's responses.parquet."""
+    """Rows (du, frame, marker) per docs/outputs.md's responses.parquet."""
     n, M = avg.displacement_mm.shape
     return pd.DataFrame({
         "du": np.int64(avg.du),

@@ -31,7 +31,8 @@ def _r(x, nd=5):
 
 
 def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
-    """discrepancy.json (OUTPUTS.md, plus the localisation and per-DU/marker gaps per stage)."""
+    """discrepancy.json (docs/outputs.md), plus the localisation and per-DU/marker gaps per
+    stage."""
     floor = res.noise_floor_mm
 
     def evidence(items):

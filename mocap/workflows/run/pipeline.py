@@ -9,7 +9,7 @@ Stages are pure functions from one typed result to the next:
             -> audit_capture -> the audit report
 
 ``run`` joins them and returns one frozen :class:`RunResult`. Without an output folder it
-writes nothing. With one it writes OUTPUTS.md's files atomically, holds the folder's lock
+writes nothing. With one it writes docs/outputs.md's files atomically, holds the folder's lock
 (:mod:`mocap.workflows.run.lock`) and keys every stage's results by what it reads
 (:mod:`mocap.workflows.run.cache`): a rerun reuses what is unchanged, recomputes the rest and says which;
 a killed run resumes from the takes it finished.
@@ -862,7 +862,7 @@ def run(session: Session, out_dir: str | Path | None = None,
         settings: RunSettings = RunSettings(), *, progress: Say | None = None,
         bars: bool | None = False, force: bool = False, writers: RunWriters = RunWriters()
         ) -> RunResult:
-    """Every stage on ``session``; the results, and (with ``out_dir``) OUTPUTS.md's files.
+    """Every stage on ``session``; the results, and (with ``out_dir``) docs/outputs.md's files.
 
     out_dir : None writes nothing at all. Otherwise the folder is locked for the run (a second
         run into it is refused: ``mocap.workflows.run.lock.OutputInUse``), results of an earlier run with
