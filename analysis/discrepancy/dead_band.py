@@ -3,13 +3,12 @@
 A play of half-width h before the skin's hysteresis is, for a Preisach-type skin, the same kind
 of operator with every relay widened by h (a play before a play is one play of the summed width:
 docs/discrepancy.md), so the base model's play density can hold a backlash and the candidate
-search sees no held-out gain. On a Bouc-Wen face with a play of 12 command units, the base with
-a play forced to 0, 4, 8 or 12 fits the takes alike (training SSE 195.4, 195.9, 196.3, 196.3 mm^2)
-while the density moves its weight from the quarter-width plays to the zero-width one.
+search sees no held-out gain: on a face with a play of 12 command units, the base with a play
+forced to any width from 0 to 12 fits the takes alike while the density moves its weight from the
+quarter-width plays to the zero-width one.
 
 What the density cannot do is take away a dead band the face has not got: a play forced wider
-than the face's band stops motion the takes show, and the fit degrades fast (the same face: 198.5
-at 14, 210.3 at 16, 315.5 at 20). On faces without a backlash it degrades from 2 to 4 command
+than the face's band stops motion the takes show, and the fit degrades fast. On faces without a backlash it degrades from 2 to 4 command
 units on, on every base family (Bouc-Wen, PI, Preisach and branch play: a DU whose skin moves at
 once after a reversal rules out a shared band). So the profile of a forced play, from 0 upwards,
 is flat to an edge and rises beyond it, and the edge is a measurement: the narrowest band every
@@ -25,10 +24,10 @@ onset: beyond the band the forced play takes away travel in proportion to h - h0
 reversal, and the density gives part of it back at first, so the rise starts softer than the
 square of the lost travel (a free exponent reads 2.25-4.25 on the four families' profiles). With
 commands in steps of 12.75 units it reads a band of 12 as 12.3 (Bouc-Wen), 12.9 (Preisach), 13.3
-(PI) on 4-DU sessions and 11.1 on a 2-DU one; a threshold on the slope relative to the flat level
-read 12.8-13.8 on the first and 15.9 on the second, where fewer reversals carry the band (a
-likelihood-ratio bound is no use either: with about 2.5e5 effective residuals it takes the fit's
-own convergence wobble, a few tenths of a mm^2, for evidence). The interval is the onset fitted
+(PI) on 4-DU sessions and 11.1 on a 2-DU one. A threshold on the slope relative to the flat
+level reads later where fewer reversals carry the band, and a likelihood-ratio bound takes the
+fit's own convergence wobble (a few tenths of a mm^2 over about 2.5e5 effective residuals) for
+evidence. The interval is the onset fitted
 with the exponents 4 and 2: how far the reading moves with the shape.
 """
 

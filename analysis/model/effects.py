@@ -298,9 +298,8 @@ class CouplingLaw(Coupling):
     path to where the reduced drive gets it, and on a bowed path or one that ends off the chord
     the two part by kappa y y' (the path's tangent - its chord). The law alone is not enough
     either: the model's y is the face's drive only up to a reparametrisation the path absorbs on
-    single-DU takes (on a branch-play face with off-chord paths and the simulator's uniform law,
-    the law alone held out at 2.70 x the noise floor, the pair vectors alone at 1.43, both
-    together at 1.22). One global parameter (profiled, the curves held: single-DU takes do not
+    single-DU takes (on off-chord paths the law alone and the pair vectors alone both hold out
+    worse than the two together). One global parameter (profiled, the curves held: single-DU takes do not
     depend on it), the pair vectors refitted at each value; kappa is reported as
     :class:`Coupling`'s, read from the data in travel along the paths
     (:func:`mocap.analysis.model.fit.coupling_kappa`), not the law's share of the fit."""
