@@ -78,7 +78,8 @@ def main() -> int:
                 "lag+drift": ["lag", "drift"]}
     lines = ["# Discrepancy workflow: naming over hidden effects and seeds", "",
              "Small labeled sessions (4 DUs, 20 markers, 3 trials, identification battery); "
-             "default strengths. The workflow sees only the session.", "",
+             "default strengths. The workflow sees only the session. "
+             f"`python benchmarks/discrepancy_sweep.py --seeds {args.seeds}`.", "",
              "| hidden | seed | named | parameters (truth) | held-out RMS before -> after (mm) | "
              "noise floor (mm) | s |", "|---|---|---|---|---|---|---|"]
     confusion: dict[str, dict[str, int]] = {}
