@@ -588,7 +588,10 @@ class _Keys:
                                        fill_gaps_frames=settings.fill_gaps_frames,
                                        record=t.name in recorded, **recon)
                       for t in face}
-        commands = {t.name: fp(t.commands) for t in session.takes if t.commands is not None}
+        # a command file's key holds its take's offset (the same file read on another clock)
+        commands = {t.name: fp(t.commands) if not t.commands_offset_s
+                    else (fp(t.commands), t.commands_offset_s)
+                    for t in session.takes if t.commands is not None}
         responses = [(t.name, t.du, t.trial, self.takes[t.name], commands.get(t.name))
                      for t in session.takes_of_kind("response")]
         rest_key = self.takes.get(rest.name) if rest else None
@@ -601,6 +604,7 @@ class _Keys:
                                 figures=writers.analysis_figures is not None)
         self.audit = make_key("audit", trials=self.trials, calibrate=self.calibrate,
                               takes=self.takes, min_cameras=settings.reconstruction.min_cameras,
+                              commands=commands,
                               session=session.name,
                               figures=writers.audit_figures is not None)
         self.recording = make_key("recording", analyze=self.analyze if settings.analyze else None,
@@ -769,12 +773,13 @@ class _Composer:
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 
-        from mocap.audit import audit_capture
+        from mocap.audit import audit_capture, command_alignment
 
+        min_cam = settings.reconstruction.min_cameras
         audit = self.stage(
             "audit", lambda: audit_capture(session.name, calibration, recon, trials.averages,
-                                           trials.rejections,
-                                           min_cameras=settings.reconstruction.min_cameras),
+                                           trials.rejections, min_cameras=min_cam,
+                                           alignment=command_alignment(session, recon, min_cam)),
             lambda a: write_audit_files(out, a, recon, calibration,
                                         self.writers.audit_figures))
         stages.append("audit")
