@@ -324,8 +324,8 @@ class Session:
         """
         rows = self.read_command_log(name)
         offset = self.take(name).commands_offset_s
-        if offset:
-            rows["time_s"] = rows["time_s"].to_numpy(float) + offset
+        if offset:  # to the nanosecond: 0.3 - 0.25 reads as 0.05, as the file's 0.05 would
+            rows["time_s"] = np.round(rows["time_s"].to_numpy(float) + offset, 9)
         return rows
 
     def read_command_log(self, name: str) -> pd.DataFrame:

@@ -231,8 +231,14 @@ class SessionLags:
     spread_s: float
 
 
-AMBIGUITY = 0.5
+AMBIGUITY = 0.15
 """A take's profile minimum within this fraction of its least is another candidate lag."""
+DISTINCT_S = 0.04
+"""Minima closer than this to a take's best (s) are its ripple, not another candidate."""
+PINNED = 0.05
+"""A take pins its lag when every minimum farther than ``DISTINCT_S`` from its best has a
+residual over ``1 + PINNED`` times the least (a uniform staircase does not: a delay of whole
+steps fits it almost as well)."""
 
 
 def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: float | None = None,
@@ -254,7 +260,8 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
     lag minimises the takes' joint Gaussian likelihood (sum over takes of n/2 log RSS). A take
     whose profile has several minima (a uniform staircase: a delay of whole steps fits as
     well, the map absorbing it) takes the one nearest the session lag and is marked ambiguous
-    in its note.
+    in its note. The session lag is the joint minimum of the takes that pin their lag
+    (``PINNED``; of all takes when none does).
     """
     fps = float(fps)
     ready, out = {}, {}
@@ -271,16 +278,30 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
         centre_s = float(np.median(diffs)) if diffs else 0.0
     grid = centre_s + np.arange(-round(max_lag_s * fps), round(max_lag_s * fps) + 1) / fps
     profiles = {n: _rss(t.Y, t.schedule, fps, grid) for n, t in ready.items()}
-    joint = sum(0.5 * t.Y.size * np.log(np.maximum(profiles[n], 1e-300)) for n, t in ready.items())
+    pinned = []
+    for n, r in profiles.items():
+        mins = _local_minima(r, np.inf)
+        far = mins[np.abs(grid[mins] - grid[np.argmin(r)]) > DISTINCT_S]
+        if far.size == 0 or r[far].min() > (1 + PINNED) * r.min():
+            pinned.append(n)
+    use = pinned or list(ready)
+    joint = sum(0.5 * ready[n].Y.size * np.log(np.maximum(profiles[n], 1e-300)) for n in use)
     session = float(grid[int(np.argmin(joint))])
     lags = []
     for name, t in ready.items():
         cand = _local_minima(profiles[name], AMBIGUITY)
-        pick = grid[cand[np.argmin(np.abs(grid[cand] - session))]] if cand.size else session
-        far = grid[cand][np.abs(grid[cand] - pick) > 2.0 / fps]
-        note = ("" if far.size == 0 else "several lags fit this take alike (also "
-                + ", ".join(f"{v:+.3f}" for v in far[:4]) + " s): the one nearest the "
-                "session's is kept")
+        if name in pinned:
+            pick = grid[int(np.argmin(profiles[name]))]
+            note = ""
+        else:
+            pick = grid[cand[np.argmin(np.abs(grid[cand] - session))]]
+            others = grid[cand][np.abs(grid[cand] - pick) > DISTINCT_S]
+            note = ("several lags fit this take alike (also " + ", ".join(
+                f"{v:+.3f}" for v in others[:4]) + " s; a uniform staircase cannot tell a delay "
+                "of whole steps from hysteresis): the one nearest the session's is kept"
+                if others.size else "")
+            if not pinned:
+                note = (note + "; " if note else "") + "no take of the session pins the lag"
         if refine:
             lag, half = _refine(t, fps, float(pick))
         else:
