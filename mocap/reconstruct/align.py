@@ -4,15 +4,17 @@ A take's ``commands_offset_s = o`` says its command file's time 0 is capture tim
 acts at capture time ``o + time_s``; command time = capture time - o). This module measures the
 lag between a take's motion and its commands, to propose ``o`` and to audit it:
 
-- :func:`motion_lag` reads the lag from the motion itself. The markers' motion is modelled as a
-  static function of the commands shifted by ``tau``: ``Y(t) = sum_d g_d(c_d(t - tau), s_d(t -
-  tau))``, each ``g_d`` piecewise linear in the command (knots every 32 units) with one branch
-  for rising and one for falling commands (``s_d``: the sign of the DU's latest change), so that
-  a rate-independent hysteresis is not read as a delay. ``Y`` is the take's largest principal
-  components of marker motion. The lag is the ``tau`` of least squared residual, searched on a
-  grid around the onset difference (first moved frame minus first nonzero command) and refined
-  to a twentieth of a frame; between frames the residual is flat, so the estimate is the middle
-  of its flat minimum.
+- :func:`motion_lags` reads the lag from the motion itself. The markers' motion is modelled as
+  a static function of the commands shifted by ``tau``: ``Y(t) = sum_d g_d(c_d(t - tau),
+  s_d(t - tau))``, each ``g_d`` piecewise linear in the command (knots every 32 units) with one
+  branch for rising and one for falling commands (``s_d``: the sign of the DU's latest change),
+  so that a rate-independent hysteresis is not read as a delay. ``Y`` is the take's largest
+  principal components of marker motion. Each take's residual is profiled over lags a frame
+  apart around the onset difference (first moved frame minus first nonzero command); between
+  frames the residual is flat, so a take's lag is the middle of its flat minimum on a grid of a
+  twentieth of a frame. A uniform staircase (the trapezoid of a response take) fits a delay of
+  whole steps almost as well as the truth (the map relabels the steps): such a take takes the
+  candidate nearest the lag of the takes that do pin theirs (plan and other motion takes).
 - :func:`sync_edge` reads a sync channel (an analog channel that steps when the command log
   starts): the capture time of its first edge, interpolated between samples.
 
@@ -82,7 +84,7 @@ def _motion_signal(X: np.ndarray) -> np.ndarray | None:
     if usable.size == 0 or n < 4:
         return None
     with np.errstate(all="ignore"):
-        spread = np.nanpercentile(X[:, usable], 95, axis=0) - np.nanpercentile(X[:, usable], 5, axis=0)
+        spread = np.nanstd(X[:, usable], axis=0)  # (n_usable, 3) mm
     order = np.argsort(-np.linalg.norm(spread, axis=1))
     pick = usable[order[:N_MARKERS]]
     frames = np.arange(n)
@@ -93,9 +95,10 @@ def _motion_signal(X: np.ndarray) -> np.ndarray | None:
             cols.append(np.interp(frames, frames[ok], X[ok, j, a]))
     Y = np.column_stack(cols)
     Y -= Y.mean(axis=0)
-    u, s, _ = np.linalg.svd(Y, full_matrices=False)
-    k = min(N_COMPONENTS, int(np.sum(s > 1e-9 * max(s[0], 1e-300))))
-    return u[:, :k] * s[:k] if k else None
+    w, v = np.linalg.eigh(Y.T @ Y)  # the principal axes of a tall, narrow Y
+    w, v = w[::-1], v[:, ::-1]
+    k = min(N_COMPONENTS, int(np.sum(w > 1e-18 * max(w[0], 1e-300))))
+    return Y @ v[:, :k] if k else None
 
 
 def _onset_frame(Y: np.ndarray) -> float | None:
