@@ -319,3 +319,50 @@ def test_write_offsets_keeps_every_other_line(tmp_path):
     assert doc["takes"][0]["commands_offset_s"] == -0.125
     assert "commands_offset_s" not in doc["takes"][1]
     assert new.replace("commands_offset_s = -0.125", "commands_offset_s = 9.0") == text
+
+
+def test_a_changed_offset_is_not_served_from_the_run_cache(sessions, tmp_path):
+    """The offset is part of the stages' keys: editing it recomputes the trials and the audit,
+    and reuses the reconstruction (the take files did not change)."""
+    from mocap.pipeline import RunSettings, run_session
+
+    d = tmp_path / "s"
+    shutil.copytree(sessions[1], d)
+    settings = RunSettings(analyze=False, recording=False, jobs=1)
+    first = run_session(d, tmp_path / "out", settings=settings)
+    assert not [f for f in first.audit["flagged"] if f["kind"] == "take"]
+    text = (d / "session.toml").read_text()
+    (d / "session.toml").write_text(text.replace("commands_offset_s = -0.25",
+                                                 "commands_offset_s = 0.0"))
+    again = run_session(d, tmp_path / "out", settings=settings)
+    assert "trials" in again.computed and "audit" in again.computed
+    assert any(r.startswith("reconstruct") for r in again.reused)
+    assert {f["item"] for f in again.audit["flagged"] if f["kind"] == "take"} \
+        == set(_commanded(sessions[0]))
+
+
+def test_trapezoids_alone_keep_the_manifest_lag_in_the_audit(sessions):
+    """Response takes alone (uniform staircases) fit a delay of whole steps almost as well: the
+    audit's reading keeps the candidate nearest the manifest (0), so an aligned session of
+    trapezoids is not flagged; a take that pins its lag (the plan take) is read as it is."""
+    from mocap.reconstruct.align import motion_lags
+    from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
+
+    def takes(path, kinds):
+        s = load_session(path)
+        out = {}
+        for t in s.takes:
+            if t.kind in kinds and t.commands is not None:
+                df = s.read_take(t.name)
+                out[t.name] = (dense_from_3d(df, marker_names_3d([df], s.marker_template)).X,
+                               s.read_commands(t.name))
+        return out
+
+    response = takes(sessions[0], ("response",))
+    lags = motion_lags(response, FPS, max_lag_s=0.6, centre_s=0.0, refine=False, prior_s=0.0)
+    assert all(abs(e.lag_s) <= 1 / FPS for e in lags.takes.values())
+    assert all("no take of the session pins the lag" in e.note for e in lags.takes.values())
+    plan = takes(sessions[2], ("motion",))
+    lags = motion_lags(plan, FPS, max_lag_s=0.6, centre_s=0.0, refine=False, prior_s=0.0)
+    (e,) = lags.takes.values()
+    assert abs(e.lag_s + SHIFT_S) <= 1 / FPS and e.note == ""

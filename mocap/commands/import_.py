@@ -112,11 +112,15 @@ def _align(args: argparse.Namespace, report: dict) -> int:
     apply = args.align_commands == "apply"
     offsets = {k: v["offset_s"] for k, v in alignment["takes"].items() if v["offset_s"] is not None}
     if apply and offsets:
-        write_offsets(args.out, offsets)
+        try:
+            write_offsets(args.out, offsets)
+        except ValueError as e:
+            print(f"error: --align-commands apply: {e}", file=sys.stderr)
+            apply = offsets = None
     update_import_report(args.out, alignment, apply and bool(offsets))
     for line in alignment_lines(alignment, apply and bool(offsets)):
         print(line)
-    return 0
+    return 1 if offsets is None else 0
 
 
 def _import_wand(args: argparse.Namespace) -> int:

@@ -245,7 +245,7 @@ steps fits it almost as well)."""
 
 
 def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: float | None = None,
-                refine: bool = True) -> SessionLags:
+                refine: bool = True, prior_s: float | None = None) -> SessionLags:
     """The lag of each take's motion after its commands, read from the motion, and the lag
     they share.
 
@@ -258,6 +258,8 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
     centre_s : the search's centre; default the takes' median onset difference (first moved
         frame minus first nonzero command).
     refine : refine each lag to a twentieth of a frame (else to the coarse grid's frame).
+    prior_s : the session lag to keep when no take pins its lag (the audit's 0: what the
+        manifest says, which such takes cannot contradict); default their joint minimum.
 
     Each take's residual profile is computed on one grid of lags (a frame apart); the session
     lag minimises the takes' joint Gaussian likelihood (sum over takes of n/2 log RSS). A take
@@ -287,9 +289,12 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
         far = mins[np.abs(grid[mins] - grid[np.argmin(r)]) > DISTINCT_S]
         if far.size == 0 or r[far].min() > (1 + PINNED) * r.min():
             pinned.append(n)
-    use = pinned or list(ready)
-    joint = sum(0.5 * ready[n].Y.size * np.log(np.maximum(profiles[n], 1e-300)) for n in use)
-    session = float(grid[int(np.argmin(joint))])
+    if not pinned and prior_s is not None:
+        session = float(prior_s)
+    else:
+        use = pinned or list(ready)
+        joint = sum(0.5 * ready[n].Y.size * np.log(np.maximum(profiles[n], 1e-300)) for n in use)
+        session = float(grid[int(np.argmin(joint))])
     lags = []
     for name, t in ready.items():
         cand = _local_minima(profiles[name], AMBIGUITY)
