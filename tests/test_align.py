@@ -366,3 +366,22 @@ def test_trapezoids_alone_keep_the_manifest_lag_in_the_audit(sessions):
     lags = motion_lags(plan, FPS, max_lag_s=0.6, centre_s=0.0, refine=False, prior_s=0.0)
     (e,) = lags.takes.values()
     assert abs(e.lag_s + SHIFT_S) <= 1 / FPS and e.note == ""
+
+
+def test_an_offset_read_from_the_motion_absorbs_a_dead_time(tmp_path):
+    """On a face with a 0.06 s dead time and aligned logs, the motion reads a 0.06 s offset:
+    what the report warns about (the clock offset and the dead time cannot be told apart)."""
+    from mocap.interop.align import DEAD_TIME_WARNING, align_session
+    from mocap.simulate import simulate
+    from mocap.simulate.config import preset
+    from mocap.simulate.effects import HiddenEffect
+
+    delay = 0.06
+    cfg = preset("small", seed=5, du_ids=(4, 7), n_markers=20, n_trials=2, battery=False,
+                 motion_plans=("A",), motion_dus=(4, 7), labeled=True, ground=False,
+                 effect=HiddenEffect("deadtime", delay))
+    simulate(cfg, tmp_path)
+    rep = align_session(tmp_path / "session")
+    assert rep["takes"] and all(abs(t["offset_s"] - delay) <= 1 / FPS
+                                for t in rep["takes"].values())
+    assert DEAD_TIME_WARNING in rep["warnings"]
