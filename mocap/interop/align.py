@@ -94,7 +94,7 @@ def align_session(session_dir, *, sources: dict | None = None, sync_channel: str
         from_motion[t.name] = t
     if from_motion:
         frames = {}
-        for name, t in from_motion.items():
+        for name in from_motion:
             df = session.read_take(name)
             X = dense_from_3d(df, marker_names_3d([df], session.marker_template)).X
             frames[name] = (X, session.read_commands(name))  # capture time: current offset applied

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from mocap.schedules import TIME_TOL_S, sample_commands
+from mocap.schedules import TIME_TOL_S
 
 __all__ = ["LagEstimate", "MISALIGNED_AFTER_S", "MISALIGNED_BEFORE_S", "SessionLags", "motion_lags",
            "sync_edge"]
@@ -64,7 +64,7 @@ class LagEstimate:
         the flat minimum between frames (at least half a frame). Residuals that are correlated
         in time make the fit's part optimistic.
     method : "motion" or "sync".
-    note : why ``lag_s`` is NaN, or "".
+    note : why ``lag_s`` is NaN, or what to know about it (several lags fitting alike), or "".
     """
 
     lag_s: float
@@ -130,7 +130,9 @@ def _schedule(rows: pd.DataFrame, dus) -> list[tuple[np.ndarray, np.ndarray, np.
 
 
 def _sampled(schedule, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n_times, n_dus) commands (0 before a DU's first row) and directions (+1 before it)."""
+    """(n_times, n_dus) commands (0 before a DU's first row) and directions (+1 before it), by
+    the rule of ``mocap.session.command_matrix`` (the last row with time_s <= t + 1e-9) at
+    trial lags: the rows are already in capture time."""
     cmd = np.zeros((times.size, len(schedule)))
     sign = np.ones((times.size, len(schedule)))
     for j, (t, c, s) in enumerate(schedule):
