@@ -21,9 +21,9 @@ written into audit.json):
   (:func:`mocap.reconstruct.align.motion_lags`, searched within ``ALIGNMENT_SEARCH_S``); a take
   whose motion precedes its commands by more than ``MISALIGNED_BEFORE_S`` or follows them by
   more than ``MISALIGNED_AFTER_S`` warns, by name. A take of uniform steps alone (a trapezoid)
-  cannot tell a delay of whole steps from hysteresis: it takes its candidate lag nearest the
-  one the session's plan or motion takes pin (or nearest 0 when none does), so a trapezoid
-  misaligned by whole steps may pass.
+  cannot tell a delay of whole steps from hysteresis: it is read as the lag the session's plan
+  or motion takes pin (0, what the manifest says, when none does), so a trapezoid misaligned
+  alone by whole steps passes.
 
 The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
 bad markers are left out by the rejections; a failing calibration or camera condemns the capture).

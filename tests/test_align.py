@@ -343,8 +343,8 @@ def test_a_changed_offset_is_not_served_from_the_run_cache(sessions, tmp_path):
 
 def test_trapezoids_alone_keep_the_manifest_lag_in_the_audit(sessions):
     """Response takes alone (uniform staircases) fit a delay of whole steps almost as well: the
-    audit's reading keeps the candidate nearest the manifest (0), so an aligned session of
-    trapezoids is not flagged; a take that pins its lag (the plan take) is read as it is."""
+    audit reads them near what the manifest says (0), so an aligned session of trapezoids is
+    not flagged; a take that pins its lag (the plan take) is read as it is."""
     from mocap.reconstruct.align import motion_lags
     from mocap.reconstruct.labeled_input import dense_from_3d, marker_names_3d
 
@@ -361,7 +361,7 @@ def test_trapezoids_alone_keep_the_manifest_lag_in_the_audit(sessions):
     response = takes(sessions[0], ("response",))
     lags = motion_lags(response, FPS, max_lag_s=0.6, centre_s=0.0, refine=False, prior_s=0.0)
     assert all(abs(e.lag_s) <= 1 / FPS for e in lags.takes.values())
-    assert all("no take of the session pins the lag" in e.note for e in lags.takes.values())
+    assert all("no take of the session pins its lag" in e.note for e in lags.takes.values())
     plan = takes(sessions[2], ("motion",))
     lags = motion_lags(plan, FPS, max_lag_s=0.6, centre_s=0.0, refine=False, prior_s=0.0)
     (e,) = lags.takes.values()

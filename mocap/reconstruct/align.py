@@ -13,8 +13,8 @@ lag between a take's motion and its commands, to propose ``o`` and to audit it:
   apart around the onset difference (first moved frame minus first nonzero command); between
   frames the residual is flat, so a take's lag is the middle of its flat minimum on a grid of a
   twentieth of a frame. A uniform staircase (the trapezoid of a response take) fits a delay of
-  whole steps almost as well as the truth (the map relabels the steps): such a take takes the
-  candidate nearest the lag of the takes that do pin theirs (plan and other motion takes).
+  whole steps almost as well as the truth (the map relabels the steps): such a take is read
+  within two frames of the lag the takes that do pin theirs share (plan and motion takes).
 - :func:`sync_edge` reads a sync channel (an analog channel that steps when the command log
   starts): the capture time of its first edge, interpolated between samples.
 
@@ -236,8 +236,9 @@ class SessionLags:
     spread_s: float
 
 
-AMBIGUITY = 0.15
-"""A take's profile minimum within this fraction of its least is another candidate lag."""
+AMBIGUITY = 0.5
+"""A take's profile minimum within this fraction of its least is another lag that fits it
+(listed in its note)."""
 DISTINCT_S = 0.04
 """Minima closer than this to a take's best (s) are its ripple, not another candidate."""
 PINNED = 0.05
@@ -263,12 +264,13 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
     prior_s : the session lag to keep when no take pins its lag (the audit's 0: what the
         manifest says, which such takes cannot contradict); default their joint minimum.
 
-    Each take's residual profile is computed on one grid of lags (a frame apart); the session
-    lag minimises the takes' joint Gaussian likelihood (sum over takes of n/2 log RSS). A take
-    whose profile has several minima (a uniform staircase: a delay of whole steps fits as
-    well, the map absorbing it) takes the one nearest the session lag and is marked ambiguous
-    in its note. The session lag is the joint minimum of the takes that pin their lag
-    (``PINNED``; of all takes when none does).
+    Each take's residual profile is computed on one grid of lags (a frame apart). A take pins
+    its lag when no distant minimum fits nearly as well (``PINNED``); a uniform staircase (a
+    trapezoid) does not: a delay of whole steps fits it almost as well, the map relabelling the
+    steps. The session lag minimises the joint Gaussian likelihood (sum over takes of n/2 log
+    RSS) of the takes that pin theirs (of all takes when none does, or ``prior_s``). A take
+    that pins its lag keeps its own; any other is read within two frames of the session lag,
+    and its note says so.
     """
     fps = float(fps)
     ready, out = {}, {}
@@ -299,19 +301,19 @@ def motion_lags(takes: dict, fps: float, *, max_lag_s: float = 2.0, centre_s: fl
         session = float(grid[int(np.argmin(joint))])
     lags = []
     for name, t in ready.items():
-        cand = _local_minima(profiles[name], AMBIGUITY)
         if name in pinned:
             pick = grid[int(np.argmin(profiles[name]))]
             note = ""
         else:
-            pick = grid[cand[np.argmin(np.abs(grid[cand] - session))]]
+            pick = session
+            cand = _local_minima(profiles[name], AMBIGUITY)
             others = grid[cand][np.abs(grid[cand] - pick) > DISTINCT_S]
-            note = ("several lags fit this take alike (also " + ", ".join(
-                f"{v:+.3f}" for v in others[:4]) + " s; a uniform staircase cannot tell a delay "
-                "of whole steps from hysteresis): the one nearest the session's is kept"
-                if others.size else "")
-            if not pinned:
-                note = (note + "; " if note else "") + "no take of the session pins the lag"
+            note = ("its lag is read near the session's" + (
+                " (taken from the takes that pin theirs)" if pinned else
+                " (no take of the session pins its lag)") + ": a uniform staircase cannot tell a "
+                "delay of whole steps from hysteresis" + (
+                    " (also fit: " + ", ".join(f"{v:+.3f}" for v in others[:4]) + " s)"
+                    if others.size else ""))
         if refine:
             lag, half = _refine(t, fps, float(pick))
         else:
