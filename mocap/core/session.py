@@ -14,9 +14,14 @@ Conventions, stated once here:
   frame), ``camera`` (str, a manifest camera id), ``x``, ``y`` (float64 px, finite).
 - 3D take table: one row per marker sample, columns ``frame`` (int64), ``marker`` (str),
   ``x``, ``y``, ``z`` (float64 mm, NaN when the marker was not seen).
-- Commands table: one row per command change, ``time_s`` (float64 s, >= 0), ``du`` (int64, a
-  manifest DU id), ``command`` (int64, 0..255). Frame ``f`` is driven by the last row with
-  ``time_s <= f / fps + 1e-9`` (:func:`command_matrix`).
+- Commands table: one row per command change, ``time_s`` (float64 s, >= 0 in the file), ``du``
+  (int64, a manifest DU id), ``command`` (int64, 0..255). Frame ``f`` is driven by the last row
+  with ``time_s <= f / fps + 1e-9`` (:func:`command_matrix`).
+- Command / capture alignment: a take's ``commands_offset_s = o`` (default 0) is the capture
+  time of its command file's time 0, so a row acts at capture time ``o + time_s`` (command time =
+  capture time - o; o < 0 when the log started before the cameras). :meth:`Session.read_commands`
+  is the one place that applies it: every stage pairing frames with commands reads them there,
+  in capture time. :meth:`Session.read_command_log` gives the file's own times.
 - Every violation of the contract raises :class:`SessionError` whose message names the file,
   the row (CSV: 1-based line number, the header being line 1; Parquet: 1-based row) or the
   manifest key, and what was expected versus what was found.
@@ -76,7 +81,7 @@ _CAMERA_KEYS = ("id", "width", "height", "focal_px")
 _WAND_KEYS = ("marker_offsets_mm",)
 _GROUND_KEYS = ("markers_mm",)
 _DU_KEYS = ("id", "name", "feedback")
-_TAKE_KEYS = ("name", "kind", "file", "commands", "du", "trial", "plan")
+_TAKE_KEYS = ("name", "kind", "file", "commands", "commands_offset_s", "du", "trial", "plan")
 _EXTENSIONS = (".csv", ".parquet")
 _MAX_INT = 2**53  # largest integer a float64 column holds exactly
 # Tokens read as "no value" in numeric CSV columns (pyarrow's defaults, as its fast path does).
@@ -194,6 +199,9 @@ class TakeInfo:
     du : the driven DU's id (required for ``response`` takes), or None.
     trial : trial number (from 1), or None.
     plan : free label of the motion plan, or None.
+    commands_offset_s : capture time (s from the take's first frame) of the commands file's
+        time 0: a row acts at capture time ``commands_offset_s + time_s``. 0 when the command log
+        and the cameras started together (the default).
     """
 
     name: str
@@ -203,6 +211,7 @@ class TakeInfo:
     du: int | None
     trial: int | None
     plan: str | None
+    commands_offset_s: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,12 +300,19 @@ class Session:
         return df
 
     def read_commands(self, name: str) -> pd.DataFrame:
-        """Read and validate a take's commands file.
+        """A take's commands in capture time: the one reader every stage pairing a take's
+        frames with its commands goes through.
+
+        Each row's ``time_s`` is the capture time it acts at (s from the take's first frame):
+        the file's ``time_s`` plus the take's ``commands_offset_s`` (command time = capture
+        time - offset). With no offset it is the file as written.
 
         Returns
         -------
-        DataFrame in file order: ``time_s`` float64 s (>= 0), ``du`` int64 (a manifest DU id),
-        ``command`` int64 (0..255). May have zero rows (every DU then holds 0).
+        DataFrame in file order: ``time_s`` float64 s (capture time; negative for rows logged
+        before the take's first frame, which then drive it from its first frame), ``du`` int64
+        (a manifest DU id), ``command`` int64 (0..255). May have zero rows (every DU then holds
+        0).
 
         Raises
         ------
@@ -306,6 +322,16 @@ class Session:
         A file is read and checked once per Session (a run validates every commands file, then
         its trials and its recording read them again); each call returns a fresh copy.
         """
+        rows = self.read_command_log(name)
+        offset = self.take(name).commands_offset_s
+        if offset:  # to the nanosecond: 0.3 - 0.25 reads as 0.05, as the file's 0.05 would
+            rows["time_s"] = np.round(rows["time_s"].to_numpy(float) + offset, 9)
+        return rows
+
+    def read_command_log(self, name: str) -> pd.DataFrame:
+        """A take's commands file as written (its own clock: ``time_s`` >= 0), validated; no
+        offset applied. Only for estimating or checking an offset: pairing commands with
+        frames goes through :meth:`read_commands`."""
         cached = self._commands.get(name)
         if cached is None:
             take = self.take(name)
@@ -641,6 +667,13 @@ def _parse_takes(doc, root: Path, du_ids: set[int], notes) -> tuple[TakeInfo, ..
             tbl, "trial", prefix, "an integer trial number >= 1", minimum=1, required=False
         )
         plan = _string(tbl, "plan", prefix, "a string", required=False, nonempty=False)
+        offset = _number(tbl, "commands_offset_s", prefix, "a finite number of seconds (the "
+                         "capture time of the commands file's time 0)", required=False)
+        if offset is not None and commands is None:
+            raise SessionError(
+                f"{MANIFEST}: {prefix}.commands_offset_s: the take has no 'commands' file to "
+                "offset; add one or remove commands_offset_s"
+            )
         if kind == "response":
             _require(tbl, "du", prefix, "the id of the DU a response take drives")
             _require(tbl, "commands", prefix, "the commands file of a response take")
@@ -658,6 +691,7 @@ def _parse_takes(doc, root: Path, du_ids: set[int], notes) -> tuple[TakeInfo, ..
                 du=du,
                 trial=trial,
                 plan=plan,
+                commands_offset_s=0.0 if offset is None else offset + 0.0,
             )
         )
     return tuple(takes)

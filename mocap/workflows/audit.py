@@ -18,6 +18,14 @@ written into audit.json):
   (no camera pair sees it, or it fell off);
 - analyses: a session with nothing to analyse (no response take; and no command file, no DU)
   warns, and the verdict names why (:func:`nothing_to_analyse`).
+- command alignment: per commanded take, the lag of its motion after its commands (capture
+  time, ``commands_offset_s`` applied) read from the motion
+  (:func:`mocap.reconstruction.align.motion_lags`, searched within ``ALIGNMENT_SEARCH_S``); a take
+  whose motion precedes its commands by more than ``MISALIGNED_BEFORE_S`` or follows them by
+  more than ``MISALIGNED_AFTER_S`` warns, by name. A take of uniform steps alone (a trapezoid)
+  cannot tell a delay of whole steps from hysteresis: it is read as the lag the session's plan
+  or motion takes pin (0, what the manifest says, when none does), so a trapezoid misaligned
+  alone by whole steps passes.
 
 The overall verdict is the worst item's, except that markers bring it to "warn" at most (a few
 bad markers are left out by the rejections; a failing calibration or camera condemns the capture).
@@ -36,6 +44,7 @@ import numpy as np
 import pandas as pd
 
 from mocap.core.atomic import write_text
+from mocap.reconstruction.align import MISALIGNED_AFTER_S, MISALIGNED_BEFORE_S, motion_lags
 from mocap.reconstruction.trials import marker_spread
 
 THRESHOLDS = {
@@ -46,6 +55,23 @@ THRESHOLDS = {
     "marker_noise_vs_median": {"warn": 2.0, "fail": 4.0},
 }
 ORDER = {"pass": 0, "warn": 1, "fail": 2}
+ALIGNMENT_SEARCH_S = 0.6
+"""The audit looks for a take's motion lag within this many seconds of its commands."""
+
+
+def command_alignment(session, reconstruction, min_cameras: int = 3) -> dict:
+    """Each commanded take's motion lag after its commands, s (NaN when not read): the
+    ``alignment`` of :func:`audit_capture`. Commands in capture time (offsets applied)."""
+    from mocap.reconstruction.camera_count import usable_positions
+
+    takes = {t.name: (usable_positions(reconstruction.takes[t.name], min_cameras),
+                      session.read_commands(t.name))
+             for t in session.takes if t.commands is not None and t.name in reconstruction.takes}
+    if not takes:
+        return {}
+    lags = motion_lags(takes, session.fps, max_lag_s=ALIGNMENT_SEARCH_S, centre_s=0.0,
+                       refine=False, prior_s=0.0)
+    return {name: e.lag_s for name, e in lags.takes.items()}
 
 
 def _verdict(value: float, th: dict) -> str:
@@ -79,7 +105,8 @@ def nothing_to_analyse(session) -> str | None:
 
 
 def audit_capture(session_name: str, calibration, reconstruction, averages, rejections,
-                  *, min_cameras: int = 3, unanalysable: str | None = None) -> dict:
+                  *, min_cameras: int = 3, unanalysable: str | None = None,
+                  alignment: dict | None = None) -> dict:
     """The audit of a run as a JSON-ready dict.
 
     calibration : ``mocap.calib.wand_calibration.CalibrationResult`` (raw sessions) or None;
@@ -87,7 +114,8 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
     ``TrialAverage``; rejections : the rejections table; min_cameras : the cameras a 3D point
     needed in the reconstruction (a marker seen by fewer fails); unanalysable : why the session
     has nothing to analyse (:func:`nothing_to_analyse`), or None: a warning item, kept in
-    ``nothing_to_analyse`` and named beside the verdict.
+    ``nothing_to_analyse`` and named beside the verdict; alignment : take name -> the lag of its
+    motion after its commands, s (:func:`command_alignment`), or None.
     """
     recon = reconstruction
     names = list(recon.markers.names)
@@ -162,6 +190,18 @@ def audit_capture(session_name: str, calibration, reconstruction, averages, reje
     report["nothing_to_analyse"] = unanalysable
     if unanalysable:
         items.append(("session", "analyses", "warn", unanalysable))
+    if alignment is not None:
+        report["command_alignment"] = {
+            "thresholds_s": {"motion_before_commands": MISALIGNED_BEFORE_S,
+                             "motion_after_commands": MISALIGNED_AFTER_S},
+            "lag_s": {k: (None if not np.isfinite(v) else float(v)) for k, v in alignment.items()}}
+        for name, lag in alignment.items():
+            if np.isfinite(lag) and (lag < -MISALIGNED_BEFORE_S or lag > MISALIGNED_AFTER_S):
+                when = (f"{-lag:.3f} s before" if lag < 0 else f"{lag:.3f} s after")
+                items.append(("take", name, "warn",
+                              f"commands and motion look misaligned: the motion comes {when} "
+                              "its commands; set the take's commands_offset_s (mocap import "
+                              "--align-commands proposes one)"))
     report["min_cameras"] = int(min_cameras)
     report["noise_floor_mm"] = recon.noise_floor_mm
     report["rejections"] = [{"du": (None if pd.isna(r.du) else int(r.du)), "marker": r.marker,

@@ -9,8 +9,9 @@ from pathlib import Path
 DESCRIPTION = """\
 Audit a capture before trusting its analysis: the calibration's quality; per camera its blob
 count, ghost rate and dropout rate; per marker the cameras that see it, its gaps, noise floor and
-across-trial spread; the markers and trajectories rejected and why; a pass / warn / fail verdict
-per item (thresholds in mocap/workflows/audit.py and in audit.json). Writes audit.md, audit.json and
+across-trial spread; the markers and trajectories rejected and why; the takes whose motion and
+commands look misaligned (set their commands_offset_s); a pass / warn / fail verdict per item
+(thresholds in mocap/workflows/audit.py and in audit.json). Writes audit.md, audit.json and
 figures into --out (the session is only read). 'mocap run' writes the same audit.
 
 example:

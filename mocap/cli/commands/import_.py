@@ -27,11 +27,20 @@ tables (frame, camera, x, y[, status, radius]: e.g. pyOpenLPT's wand points, who
 are taken) and DLTdv/easyWand/Argus xypts.csv files (bottom-left origin, NaN when unseen) with
 an Argus/easyWand camera profile or --image-size. --wand-offsets is required for them.
 
+--align-commands proposes each take's commands_offset_s (the capture time of its command file's
+time 0, for command logs not started with the cameras): from --sync-channel (a C3D analog
+channel whose first edge marks the log's time 0) where the file has it, otherwise from the
+motion against the commands, which also counts the face's own dead time (after applying such
+an offset 'mocap discrepancy' cannot find one). Takes whose offsets differ by more than a frame
+are flagged. '--align-commands apply' writes the offsets into session.toml; without 'apply'
+they are only reported (printed and in import_report.json).
+
 examples:
   mocap import lab/*.c3d --takes lab/takes.csv --commands lab/commands --out sessions/robot1
   mocap import lab/*.c3d --pattern "smile_DU{du}_trial{trial}" --commands lab --dus dus.csv --out s1
   mocap import trial01.c3d trial02.c3d --out sessions/robot1
   mocap import take.csv --fps 120 --commands take_commands.csv --out sessions/motive1
+  mocap import trial01.c3d trial02.c3d --out s3 --align-commands apply --sync-channel SYNC
   mocap import wand_points.csv --wand-offsets 0,660 --image-size 1280x800 --out sessions/lab_wand
   mocap import wand_xypts.csv --profile profile.txt --wand-offsets 0,660 --fps 100 --out s2
 """
@@ -56,6 +65,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dus", type=Path, default=None, metavar="CSV",
                    help="DU table: du,name[,feedback]; DUs not in it are named 'DU <n>'")
     p.add_argument("--fps", type=float, default=None, help="frame rate, where a file lacks it")
+    p.add_argument("--align-commands", nargs="?", const="report", default=None,
+                   choices=("report", "apply"),
+                   help="propose each take's commands_offset_s; 'apply' writes them into "
+                        "session.toml (default: report only)")
+    p.add_argument("--sync-channel", default=None, metavar="NAME",
+                   help="with --align-commands: the C3D analog channel whose first edge marks "
+                        "each command log's time 0")
     p.add_argument("--wand-offsets", default=None,
                    help="wand recordings: marker offsets along the wand, mm (e.g. 0,660)")
     p.add_argument("--image-size", default=None,
@@ -95,6 +111,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print_report(report)
+    if args.align_commands:
+        return _align(args, report)
+    if args.sync_channel:
+        print("  note: --sync-channel is read only with --align-commands", file=sys.stderr)
     return 0
 
 
@@ -126,6 +146,36 @@ def print_report(report: dict) -> None:
             print(f"  - {t}")
     else:
         print(f"ready: mocap run {report['session']} --out OUT")
+
+
+def _align(args: argparse.Namespace, report: dict) -> int:
+    from mocap.interop.align import (
+        align_session,
+        alignment_lines,
+        update_import_report,
+        write_offsets,
+    )
+    from mocap.core.session import SessionError
+
+    sources = {t["name"]: t["source"] for t in report.get("takes", []) if "source" in t}
+    try:
+        alignment = align_session(args.out, sources=sources, sync_channel=args.sync_channel)
+    except SessionError as e:
+        print(f"error: --align-commands: the imported session does not load yet ({e}); complete "
+              f"session.toml, then run the import again with --align-commands", file=sys.stderr)
+        return 1
+    apply = args.align_commands == "apply"
+    offsets = {k: v["offset_s"] for k, v in alignment["takes"].items() if v["offset_s"] is not None}
+    if apply and offsets:
+        try:
+            write_offsets(args.out, offsets)
+        except ValueError as e:
+            print(f"error: --align-commands apply: {e}", file=sys.stderr)
+            apply = offsets = None
+    update_import_report(args.out, alignment, apply and bool(offsets))
+    for line in alignment_lines(alignment, apply and bool(offsets)):
+        print(line)
+    return 1 if offsets is None else 0
 
 
 def _import_wand(args: argparse.Namespace) -> int:

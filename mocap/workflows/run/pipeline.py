@@ -594,7 +594,10 @@ class _Keys:
                                        fill_gaps_frames=settings.fill_gaps_frames,
                                        record=t.name in recorded, **recon)
                       for t in face}
-        commands = {t.name: fp(t.commands) for t in session.takes if t.commands is not None}
+        # a command file's key holds its take's offset (the same file read on another clock)
+        commands = {t.name: fp(t.commands) if not t.commands_offset_s
+                    else (fp(t.commands), t.commands_offset_s)
+                    for t in session.takes if t.commands is not None}
         responses = [(t.name, t.du, t.trial, self.takes[t.name], commands.get(t.name))
                      for t in session.takes_of_kind("response")]
         rest_key = self.takes.get(rest.name) if rest else None
@@ -608,6 +611,7 @@ class _Keys:
         self.audit = make_key("audit", trials=self.trials, calibrate=self.calibrate,
                               takes=self.takes, min_cameras=settings.reconstruction.min_cameras,
                               session=session.name, unanalysable=nothing_to_analyse(session),
+                              commands=commands,
                               figures=writers.audit_figures is not None)
         self.recording = make_key("recording", analyze=self.analyze if settings.analyze else None,
                                   audit=self.audit, commands=commands, du_ids=session.du_ids,
@@ -775,13 +779,14 @@ class _Composer:
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 
-        from mocap.workflows.audit import audit_capture, nothing_to_analyse
+        from mocap.workflows.audit import audit_capture, command_alignment, nothing_to_analyse
 
+        min_cam = settings.reconstruction.min_cameras
         audit = self.stage(
             "audit", lambda: audit_capture(session.name, calibration, recon, trials.averages,
-                                           trials.rejections,
-                                           min_cameras=settings.reconstruction.min_cameras,
-                                           unanalysable=nothing_to_analyse(session)),
+                                           trials.rejections, min_cameras=min_cam,
+                                           unanalysable=nothing_to_analyse(session),
+                                           alignment=command_alignment(session, recon, min_cam)),
             lambda a: write_audit_files(out, a, recon, calibration,
                                         self.writers.audit_figures))
         stages.append("audit")
