@@ -167,7 +167,7 @@ def test_no_library_module_picks_a_matplotlib_backend():
                  for p in (ROOT / folder).rglob("*.py")
                  if any(k in p.read_text() for k in picks)]
     assert offenders == []
-    assert 'os.environ.setdefault("MPLBACKEND", "Agg")' in (ROOT / "mocap" / "cli.py").read_text()
+    assert 'os.environ.setdefault("MPLBACKEND", "Agg")' in (ROOT / "mocap" / "cli" / "__init__.py").read_text()
 
 
 # --- settings --------------------------------------------------------------------------------
