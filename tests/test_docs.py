@@ -11,7 +11,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
-PAGES = ("index.md", "format.md", "import.md", "outputs.md", "cli.md", "api.md",
+PAGES = ("index.md", "format.md", "import.md", "outputs.md", "cli.md", "api.md", "design.md",
          "architecture.md", "calibration.md", "indices.md", "simulator.md", "discrepancy.md")
 
 
