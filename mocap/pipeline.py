@@ -345,14 +345,14 @@ def _map_takes(session, names: list[str], calibration, markers, settings: RunSet
         for name in names:
             yield _one_take(session, name, calibration, markers, settings, name in recorded)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
+
+    from loky import ProcessPoolExecutor  # workers that never re-run the caller's __main__
 
     # a take reads the rig and its quality only: the wand's observations and residuals (2.5 MB
     # on the paper preset, pickled again for every take) stay here
     slim = _RigOnly(calibration.rig, calibration.quality)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
         futures = [pool.submit(_one_take, session, name, slim, markers, settings,
                                name in recorded) for name in names]
         try:

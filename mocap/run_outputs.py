@@ -69,10 +69,11 @@ def _draw_all(todo: list, bars: bool | None, jobs: int) -> list[Path]:
     jobs = max(1, min(int(jobs), len(todo)))
     if jobs == 1 or len(todo) < PARALLEL_MIN_FIGURES:
         return [draw_and_save(*job) for job in progress_bar(todo, len(todo), "figures", bars)]
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+    from loky import ProcessPoolExecutor  # workers that never re-run the caller's __main__
+
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
         futures = [pool.submit(draw_and_save, *job) for job in todo]
         for fut in progress_bar(as_completed(futures), len(futures), "figures", bars):
             fut.result()  # a figure that fails stops the run here, with its error

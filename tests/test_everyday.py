@@ -114,3 +114,47 @@ def test_every_command_writes_files_the_umask_allows(tiny_sim, tmp_path, mask, c
         assert (out / must).is_file(), must
     assert any((out / "run" / "figures").glob("*.png"))
     assert wrong_modes(out, mask) == {}
+
+
+# Worker processes forced for a small session (they start only from 64 MB of takes and 16
+# figures) and two of them whatever the machine's cores: the code a user writes after it.
+FORCE_WORKERS = """\
+import os
+os.cpu_count = lambda: 2
+import mocap.pipeline, mocap.run_outputs
+mocap.pipeline.PARALLEL_MIN_BYTES = 0
+mocap.run_outputs.PARALLEL_MIN_FIGURES = 1
+"""
+
+USER_CODE = """\
+import sys
+import mocap
+
+session = mocap.load_session(sys.argv[1])
+result = mocap.run(session, out_dir=sys.argv[2], recording=False)
+print(result.properties.to_json())
+"""
+
+
+@pytest.mark.parametrize("how", ["script", "-c"])
+def test_worker_processes_do_not_rerun_a_script_without_main_guard(tiny_sim, tmp_path, how):
+    """A plain script (no ``if __name__ == "__main__":``) and ``python -c`` whose run uses
+    worker processes for its takes and figures: the workers do not re-run the user's code
+    (spawned processes did: RuntimeError in each worker, then BrokenProcessPool)."""
+    import pandas as pd
+
+    code = FORCE_WORKERS + USER_CODE
+    out = tmp_path / "out"
+    if how == "script":
+        (tmp_path / "analyse.py").write_text(code, encoding="utf-8")
+        cmd = [sys.executable, str(tmp_path / "analyse.py")]
+    else:
+        cmd = [sys.executable, "-c", code]
+    proc = subprocess.run([*cmd, str(tiny_sim / "session"), str(out)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "bootstrapping" not in proc.stderr and "Traceback" not in proc.stderr
+    got = pd.read_json(__import__("io").StringIO(proc.stdout.strip().splitlines()[-1]))
+    written = pd.read_csv(out / "properties.csv")
+    assert list(got["du"]) == list(written["du"]) == [4, 7]
+    assert len(list((out / "figures").glob("*.png"))) >= 4
