@@ -869,7 +869,7 @@ def run(session: Session, out_dir: str | Path | None = None,
     from mocap.run_lock import RunLock
 
     out = Path(out_dir)
-    check_output_path(out, sessions=[session.root])
+    check_output_path(out, sessions=[session.root], option="out_dir", kind="folder")
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out) as lock:
         if lock.note:

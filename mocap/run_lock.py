@@ -112,7 +112,7 @@ class RunLock:
         extra = ("" if held.get("host") in (None, self._owner["host"]) else
                  f"; it cannot be checked from here: if that run is gone, remove {self.path}")
         return (f"{self.path.parent.parent} is in use by another run ({who}){extra}. "
-                "Wait for it, or choose another --out folder.")
+                "Wait for it, or choose another output folder.")
 
     def __exit__(self, *exc) -> None:
         if _read(self.path) == self._owner:

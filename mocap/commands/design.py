@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plan", required=True, help="motion plan: A, B, C, D, E or a CSV (time_s,P)")
     p.add_argument("--dus", required=True, help="comma-separated DU ids, e.g. 1,7,12")
     p.add_argument("--method", default="paper", choices=["paper", "model"],
-                   help="paper: METHOD.md's inverse sigmoids (default); model: optimised through "
+                   help="paper: the paper's inverse sigmoids (default); model: optimised through "
                         "the identified face model")
     p.add_argument("--out", type=Path, required=True, help="command file to write (CSV)")
     p.add_argument("--start-s", type=float, default=0.25)
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
         sources = [args.source, *([args.measured] if args.measured else [])]
         sessions = [s for s in map(session_dir_of, sources) if s]
         inputs = [f for f in (plan_file, args.reference, args.model) if f is not None]
-        check_output_path(args.out, sessions=sessions, inputs=inputs)
+        check_output_path(args.out, sessions=sessions, inputs=inputs, kind="file")
         if args.save_model is not None:
             check_output_path(args.save_model, sessions=sessions, inputs=[*inputs, args.out],
                               option="--save-model")
