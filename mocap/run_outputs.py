@@ -34,7 +34,7 @@ def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials:
                      bars: bool | None = False, jobs: int = 1) -> list[Path]:
     """The analyses' figures into ``out/figures`` (docs/outputs.md): per DU its displacement
     field and response curves, the linearity bars, the property chart and one figure per
-    evaluated motion take. ``res``: the run's ``SessionAnalysis``. Drawn on up to ``jobs``
+    evaluated motion take. ``res``: the run's ``Analysis``. Drawn on up to ``jobs``
     processes when there are at least :data:`PARALLEL_MIN_FIGURES` (the paper preset's 39:
     12.6-13.5 s in one process, 9.2-10.2 s on two). Returns the files, in the order above."""
     from mocap.analysis import figures as F

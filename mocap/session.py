@@ -1,4 +1,4 @@
-"""The session loader: a capture session directory (FORMAT.md, ``mocap-session/1``) as objects.
+"""The session loader: a capture session directory (docs/format.md, ``mocap-session/1``) as objects.
 
 A session directory holds ``session.toml`` (the manifest), an optional ``markers.csv`` (the
 marker template) and one file per take. :func:`load_session` reads and validates the manifest,
@@ -42,6 +42,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
+
+from mocap.display import Summarised, Summary
 
 __all__ = [
     "SCHEMA",
@@ -105,7 +107,7 @@ _NULL_ARRAY = pa.array(sorted(_NULL_TOKENS), pa.string())
 
 
 class SessionError(Exception):
-    """A session violates the input contract (FORMAT.md).
+    """A session violates the input contract (docs/format.md).
 
     The message names the file, the row or manifest key, and what was expected versus found.
     """
@@ -205,8 +207,8 @@ class TakeInfo:
     plan: str | None
 
 
-@dataclass(frozen=True, eq=False)
-class Session:
+@dataclass(frozen=True, eq=False, repr=False)
+class Session(Summarised):
     """A loaded, manifest-validated capture session; take data is read lazily.
 
     Attributes
@@ -241,6 +243,28 @@ class Session:
     def __getstate__(self) -> dict:
         # pickled to every worker with every take: the commands read so far stay here
         return {**self.__dict__, "_commands": {}}
+
+    def _summary(self) -> Summary:
+        from mocap.display import counts
+
+        dus = ", ".join(f"{d.id}" + (f" {d.name}" if d.name else "") for d in self.dus[:8])
+        lines = [("folder", str(self.root)),
+                 ("data", f"{'2D blobs' if self.dimension == '2d' else '3D labeled markers'}, "
+                          f"{self.fps:g} fps"),
+                 ("takes", counts((t.kind for t in self.takes), "takes")),
+                 ("DUs", f"{len(self.dus)}" + (f": {dus}" if dus else "")
+                  + (" ..." if len(self.dus) > 8 else ""))]
+        if self.cameras:
+            lines.append(("cameras", f"{len(self.cameras)}: "
+                                     + ", ".join(c.id for c in self.cameras[:12])
+                                     + (" ..." if len(self.cameras) > 12 else "")))
+        if self.marker_template is not None:
+            lines.append(("markers", f"{len(self.marker_template)} in markers.csv"))
+        if self.warnings:
+            lines.append(("warnings", f"{len(self.warnings)} (.warnings)"))
+        return Summary(f"Session {self.name!r}", tuple(lines),
+                       more="attributes: .takes .dus .cameras .wand .ground .marker_template; "
+                            ".read_take(name) .read_commands(name)")
 
     @property
     def camera_ids(self) -> tuple[str, ...]:
@@ -348,7 +372,7 @@ def load_session(path: str | Path) -> Session:
     Raises
     ------
     SessionError
-        When the manifest or a take header violates the contract (FORMAT.md).
+        When the manifest or a take header violates the contract (docs/format.md).
     """
     root = Path(path).resolve()
     if not root.is_dir():
@@ -665,7 +689,7 @@ def _parse_takes(doc, root: Path, du_ids: set[int], notes) -> tuple[TakeInfo, ..
 
 def _contained(root: Path, value: str, key: str) -> Path:
     """``root / value`` for a manifest path that is relative and stays inside the session folder
-    once links are resolved (FORMAT.md); otherwise a SessionError naming ``key``."""
+    once links are resolved (docs/format.md); otherwise a SessionError naming ``key``."""
     if "\0" in value:
         raise SessionError(f"{MANIFEST}: {key}: {_show(value)} holds a NUL character; expected a "
                            "path relative to the session folder")

@@ -4,7 +4,6 @@ screen, errors worded for where they are raised."""
 
 from __future__ import annotations
 
-import ast
 import contextlib
 import os
 import stat
@@ -69,9 +68,9 @@ def test_atomic_writes_follow_the_umask(tmp_path, mask):
 def test_a_failed_atomic_write_leaves_no_temporary_file(tmp_path):
     from mocap import atomic
 
-    with pytest.raises(ZeroDivisionError), atomic.atomic_path(tmp_path / "x.txt") as tmp:
+    with pytest.raises(RuntimeError), atomic.atomic_path(tmp_path / "x.txt") as tmp:
         tmp.write_text("half")
-        1 / 0
+        raise RuntimeError("interrupted")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -170,3 +169,140 @@ def test_the_crashing_reader_test_prints_no_fatal_error_dump():
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0 and "1 passed" in output, output[-3000:]
     assert "Fatal Python error" not in output and "Extension modules" not in output, output[-3000:]
+
+
+@pytest.fixture(scope="module")
+def tiny_result(tiny_sim):
+    import mocap
+
+    return mocap.run(mocap.load_session(tiny_sim / "session"), bootstrap_samples=0, jobs=1)
+
+
+def test_results_print_on_one_screen(tiny_result):
+    """Every public result type's repr is a short summary (the field-by-field dataclass repr
+    of a 4-DU run was 486,000 characters) and a notebook gets an HTML table."""
+    r = tiny_result
+    shown = {"RunResult": r, "Session": r.session, "CalibrationResult": r.calibration,
+             "CameraRig": r.calibration.rig, "Reconstruction": r.reconstruction,
+             "LabeledTake": r.reconstruction.takes["rest"], "Trials": r.trials,
+             "TrialAverage": r.trials.averages[0], "Analysis": r.analysis,
+             "MotionEvaluation": r.analysis.motions[0].evaluation}
+    for name, obj in shown.items():
+        assert type(obj).__name__ == name
+        text = repr(obj)
+        assert len(text) < 2000 and len(text.splitlines()) <= 40, (name, len(text))
+        assert text.startswith(name), text[:80]
+        assert "array(" not in text and "DataFrame" not in text, name
+        html = obj._repr_html_()
+        assert html.startswith("<p><b>") and len(html) < 20000, name
+    text = repr(r)
+    assert f"{r.session.name!r}: 2D, 120 fps" in text
+    for du in (4, 7):  # the properties' rows, one per DU
+        assert any(line.split()[:1] == [str(du)] for line in text.splitlines()), text
+    assert "properties" in text and ".trajectories" in text
+
+
+def test_analyze_returns_the_type_a_run_holds(tiny_sim, tiny_result):
+    """One Analysis type: mocap.analyze() gives what RunResult.analysis holds, with the same
+    properties and the trials' rejections."""
+    import numpy as np
+
+    import mocap
+
+    r = tiny_result
+    a = mocap.analyze(r.session, r.reconstruction, bootstrap_samples=0)
+    assert type(a) is type(r.analysis) and type(a).__name__ == "Analysis"
+    assert mocap.pipeline.Analysis is type(a)
+    np.testing.assert_array_equal(a.properties["sensitivity"].to_numpy(float),
+                                  r.analysis.properties["sensitivity"].to_numpy(float))
+    assert a.rejections.equals(r.rejections) and r.analysis.rejections.equals(r.rejections)
+    assert [m.take for m in a.motions] == [m.take for m in r.analysis.motions]
+
+
+def test_a_paper_sized_analysis_prints_on_one_screen():
+    """16 DUs with the paper's long names (the paper preset's table): under 2000 characters."""
+    import numpy as np
+    import pandas as pd
+
+    from mocap.analysis.session_analysis import Analysis
+    from mocap.simulate.dus import DU_TABLE
+
+    rng = np.random.default_rng(0)
+    dus = list(DU_TABLE)[:16]
+    props = pd.DataFrame({"du": [d.id for d in dus], "name": [d.name for d in dus],
+                          **{c: rng.random(16) for c in ("alpha_fwd", "beta_fwd", "sensitivity",
+                                                          "hysteresis", "dyssynchrony",
+                                                          "linearity_mean")},
+                          "n_markers": rng.integers(10, 116, 16)})
+    a = Analysis(props, pd.DataFrame(), pd.DataFrame(), {}, {}, {}, {})
+    assert len(props) == 16 and len(repr(a)) < 2000, len(repr(a))
+    assert all(str(d.id) in repr(a) for d in dus)
+
+
+# --- errors worded for where they are raised ----------------------------------------------------
+
+
+def test_an_out_that_is_a_file_is_refused_before_anything_runs(tiny_sim, tmp_path, capsys):
+    """`--out` naming an existing file: one line that says so, not "[Errno 17] File exists"
+    followed by "what was finished is kept ... resumes from it"."""
+    session = str(tiny_sim / "session")
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine\n")
+    for argv in (["run", session, "--out", str(a_file), "--jobs", "1"],
+                 ["audit", session, "--out", str(a_file)],
+                 ["calibrate", session, "--out", str(a_file / "calibration.toml")],
+                 ["calibrate", session, "--out", str(tmp_path)]):
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --out {argv[-1] if argv[0] != 'run' else a_file}:"), err
+        assert "Errno" not in err and "resumes" not in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1, err
+    assert a_file.read_text() == "mine\n"
+
+
+def test_python_errors_name_the_python_argument(tiny_sim, tmp_path):
+    """An output folder refused in mocap.run names ``out_dir`` (the argument the caller
+    wrote), never the command line's ``--out``."""
+    import mocap
+    from mocap.paths import OutputPathError
+
+    session = mocap.load_session(tiny_sim / "session")
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("")
+    for out_dir, why in ((tiny_sim / "session" / "results", "inside the session folder"),
+                         (a_file, "is a file, not a folder")):
+        with pytest.raises(OutputPathError) as err:
+            mocap.run(session, out_dir=out_dir)
+        assert str(err.value).startswith(f"out_dir {out_dir}: ") and why in str(err.value)
+        assert "--out" not in str(err.value)
+    assert not (tiny_sim / "session" / "results").exists()
+
+
+def test_dir_of_mocap_lists_the_api_not_its_helpers():
+    code = "import mocap; print(' '.join(dir(mocap)))"
+    names = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True).stdout.split()
+    assert {"load_session", "calibrate", "reconstruct", "analyze", "run", "RunSettings",
+            "__version__"} <= set(names)
+    assert "sys" not in names and not [n for n in names if n.startswith("_") and n != "__version__"]
+
+
+def test_no_package_text_cites_a_file_users_do_not_have():
+    """Help, messages and comments point at the project's docs/ pages, not at the contracts'
+    file names (METHOD.md, FORMAT.md, OUTPUTS.md) that only the developers have."""
+    import argparse
+
+    from mocap.cli import COMMANDS, _module
+
+    cited = []
+    for folder in (ROOT / "mocap", ROOT / "calib", ROOT / "analysis"):
+        for f in folder.rglob("*.py"):
+            text = f.read_text(encoding="utf-8")
+            cited += [f"{f.relative_to(ROOT)}: {name}" for name in
+                      ("METHOD.md", "FORMAT.md", "OUTPUTS.md") if name in text]
+    assert cited == []
+    for name in COMMANDS:
+        parser = argparse.ArgumentParser()
+        _module(name).add_arguments(parser)
+        for cited in ("METHOD.md", "FORMAT.md", "OUTPUTS.md"):
+            assert cited not in parser.format_help(), (name, cited)

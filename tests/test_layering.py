@@ -50,6 +50,7 @@ LAYER_OF = {
     "mocap.atomic": "core",
     "mocap.paths": "core",
     "mocap.errors": "core",
+    "mocap.display": "core",  # one-screen summaries (repr, notebook HTML) of result objects
     "mocap.pipeline": "workflows",
     "mocap.audit": "workflows",
     "mocap.batch": "workflows",

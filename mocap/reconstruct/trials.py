@@ -1,4 +1,4 @@
-"""Trials, noise floor and rejections (METHOD.md, "Experiment").
+"""Trials, noise floor and rejections (the paper, "Experiment").
 
 Conventions: trajectories are dense arrays (n_frames, n_markers, 3) in mm with NaN where a
 marker was not reconstructed; the first axis is time.
@@ -38,17 +38,18 @@ import pandas as pd
 from mocap.reconstruct.displacement import normalized, normalized_along, peak_length, principal_direction
 from mocap.schedules import ScheduleTiming, timing_from_series
 from mocap.reconstruct.settings import RejectionSettings
+from mocap.display import Summarised, Summary
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
 
 
-@dataclass(frozen=True)
-class TrialAverage:
+@dataclass(frozen=True, repr=False)
+class TrialAverage(Summarised):
     """One DU's averaged response.
 
     command : (n_frames,) the DU's command; mean : (n_frames, M, 3) mm; spread_mm : (n_frames,
     M); n_trials : (n_frames, M) int; rest_mm : (M, 3) v(0); displacement_mm : (n_frames, M);
-    delta : (n_frames, M) METHOD.md's |d| / max |d|; delta_along : the same along each marker's
+    delta : (n_frames, M) the paper's |d| / max |d|; delta_along : the same along each marker's
     principal direction (noise-unbiased, ``mocap.reconstruct.displacement.normalized_along``); trials :
     (n_trials, n_frames, M, 3) the aligned trials; takes: names.
     """
@@ -68,6 +69,16 @@ class TrialAverage:
     delta_along: np.ndarray | None = None  # (n_frames, M) along the principal direction
     along_mm: np.ndarray | None = None  # (n_frames, M) displacement along it, mm
     direction: np.ndarray | None = None  # (M, 3) each marker's unit principal direction
+
+    def _summary(self) -> Summary:
+        n_frames, n_markers = self.mean.shape[:2]
+        return Summary(f"TrialAverage of DU {self.du}: {len(self.takes)} trials, {n_frames} "
+                       f"frames x {n_markers} markers at {self.fps:g} fps",
+                       (("takes", ", ".join(self.takes[:8]) + (" ..." if len(self.takes) > 8
+                                                                 else "")),
+                        ("peak", f"{np.nanmax(self.displacement_mm, initial=0):.3g} mm")),
+                       more="attributes: .mean (n_frames, M, 3) mm .command .displacement_mm "
+                            ".delta .trials")
     timing: ScheduleTiming | None = None  # the paper's time axis, from the first take's command rows
 
 
@@ -131,7 +142,7 @@ def average_trials(du: int, trajectories: list[np.ndarray], commands: list[np.nd
 
 
 def responses_frame(avg: TrialAverage, names) -> pd.DataFrame:
-    """Rows (du, frame, marker) per OUTPUTS.md's responses.parquet."""
+    """Rows (du, frame, marker) per docs/outputs.md's responses.parquet."""
     n, M = avg.displacement_mm.shape
     return pd.DataFrame({
         "du": np.int64(avg.du),
