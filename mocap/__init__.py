@@ -18,7 +18,7 @@ Subpackages: ``mocap.calib`` (camera models, wand calibration), ``mocap.reconstr
 Units everywhere: millimetres (mm), pixels (px), seconds (s), command units (integers 0..255).
 """
 
-import sys as _sys
+import sys
 
 from mocap._facade import _Package
 
@@ -44,9 +44,10 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    # the API, the version and the subpackages already imported; not this module's helpers
-    return sorted({n for n in globals() if not n.startswith("_")} | set(__all__) | {"__version__"})
+    # the API, the version and the subpackages already imported; not this file's helpers
+    public = {n for n in globals() if not n.startswith("_") and n != "sys"}
+    return sorted(public | set(__all__) | {"__version__"})
 
 
 # ``mocap.reconstruct`` is both the subpackage and the API's stage function (mocap._facade)
-_sys.modules[__name__].__class__ = _Package
+sys.modules[__name__].__class__ = _Package
