@@ -52,8 +52,7 @@ class MotionResult(NamedTuple):
 
 
 # the columns a printed result shows (all of them are in .properties)
-SUMMARY_COLUMNS = ("du", "name", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean",
-                   "n_markers")
+SUMMARY_COLUMNS = ("du", "name", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean")
 
 
 @dataclass(frozen=True, repr=False)

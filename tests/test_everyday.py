@@ -219,8 +219,11 @@ def test_analyze_returns_the_type_a_run_holds(tiny_sim, tiny_result):
     assert [m.take for m in a.motions] == [m.take for m in r.analysis.motions]
 
 
-def test_a_paper_sized_analysis_prints_on_one_screen():
-    """16 DUs with the paper's long names (the paper preset's table): under 2000 characters."""
+def test_a_paper_sized_result_prints_on_one_screen(tiny_result):
+    """16 DUs with the paper's long names (the paper preset's table), in an Analysis and in a
+    RunResult holding it: under 2000 characters each."""
+    import dataclasses
+
     import numpy as np
     import pandas as pd
 
@@ -234,9 +237,14 @@ def test_a_paper_sized_analysis_prints_on_one_screen():
                                                           "hysteresis", "dyssynchrony",
                                                           "linearity_mean")},
                           "n_markers": rng.integers(10, 116, 16)})
-    a = Analysis(props, pd.DataFrame(), pd.DataFrame(), {}, {}, {}, {})
-    assert len(props) == 16 and len(repr(a)) < 2000, len(repr(a))
-    assert all(str(d.id) in repr(a) for d in dus)
+    a = Analysis(props, pd.DataFrame(), pd.DataFrame(), {}, {}, {}, {},
+                 motions=tiny_result.analysis.motions * 5, trials=tiny_result.trials)
+    r = dataclasses.replace(tiny_result, analysis=a)
+    for obj in (a, r):
+        text = repr(obj)
+        assert len(text) < 2000, (type(obj).__name__, len(text))
+        shown = [line.split()[0] for line in text.splitlines() if line[:4].strip().isdigit()]
+        assert shown == [str(d.id) for d in dus], text  # every DU's row
 
 
 # --- errors worded for where they are raised ----------------------------------------------------
