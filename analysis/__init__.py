@@ -2,5 +2,5 @@
 the model-discrepancy workflow. Pure functions on numpy arrays and pandas frames; no I/O except in
 the modules named for it; never imports rerun.
 
-Index conventions (the paper's): n = deformation unit (DU), m = marker, t = frame.
+Index conventions (METHOD.md): n = deformation unit (DU), m = marker, t = frame.
 """

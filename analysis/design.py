@@ -1,8 +1,8 @@
-"""Motion design by inverse response (the paper, "Motion design").
+"""Motion design by inverse response (METHOD.md, "Motion design").
 
 A motion plan P(t) in [0, 1] becomes, per DU, a command plan c(t) = R^-1(P(t)) through the DU's
 forward response while rising and its backward response while falling, sampled at the rig's
-command step and written as docs/format.md command rows.
+command step and written as FORMAT.md command rows.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Displacement vectors and their normalisation (the paper, "Spatial properties").
+"""Displacement vectors and their normalisation (METHOD.md, "Spatial properties").
 
 The functions live in :mod:`mocap.reconstruct.displacement`: trial averaging (reconstruction)
 normalises displacements too, and imports go one way (reconstruction <- analysis). They are

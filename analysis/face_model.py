@@ -41,7 +41,7 @@ smooth (Bouc-Wen-like) loops. The branch parameters shape the two branches apart
 face whose wide relays switch later (shallow forward, steep backward branch) is
 mix ~ 0.2, kappa ~ 0.5; a single sigmoid of the PI output has one steepness on both.
 
-Time: commands are sampled per docs/format.md on a grid ``OVERSAMPLE`` times finer than the frames
+Time: commands are sampled per FORMAT.md on a grid ``OVERSAMPLE`` times finer than the frames
 (for the actuator dynamics and the plays); responses are read at the frames.
 """
 
@@ -89,7 +89,7 @@ def take_tables(rows: pd.DataFrame, dus, n_frames: int, fps: float, effects,
     """Play tables, one (ceil(n_frames / stride), H) array per DU of ``dus``, frames 0, stride, ...
 
     The actuator dynamics run on the fine grid; the plays on the frames (exact for commands held
-    at least a frame, as docs/format.md's step times are; within 0.005 mm with a lag, tested).
+    at least a frame, as FORMAT.md's step times are; within 0.005 mm with a lag, tested).
     """
     a = actuator_series(rows, dus, n_frames, fps, effects)[::OVERSAMPLE]
     return [play_table(a[:, j], keep_every=stride) for j in range(a.shape[1])]
@@ -232,7 +232,7 @@ class FaceModel:
         return self.displacement_from_response(self.response(tables, dus, trial, take_shift), dus)
 
     def predict(self, rows: pd.DataFrame, n_frames: int, trial: int = 1) -> np.ndarray:
-        """Marker positions (n_frames, M, 3) mm for a command schedule (docs/format.md rows).
+        """Marker positions (n_frames, M, 3) mm for a command schedule (FORMAT.md rows).
 
         DUs of ``rows`` the model does not know are ignored; a take without commands rests.
         """

@@ -1,4 +1,4 @@
-"""Spatial linearity (the paper; docs/indices.md): the share of variance of the first principal component of all
+"""Spatial linearity (METHOD.md): the share of variance of the first principal component of all
 positions of a marker over a take, all trials pooled. 1 for a straight path; noise and curved
 paths lower it.
 

@@ -412,7 +412,7 @@ def marker_weights(model: FaceModel, dus, markers=None, min_scale_mm: float = 0.
 class ModelDesign:
     """A designed command file and what the model predicts of it.
 
-    rows : docs/format.md command rows (time_s, du, command), integers 0..255.
+    rows : FORMAT.md command rows (time_s, du, command), integers 0..255.
     t_s : (S,) the cost points, s.  predicted : (S, M) the model's normalised displacement there.
     target : (S, M) the reference there.  cost : the final cost per point (see ``spread_weight``).
     seconds : time spent.
@@ -760,7 +760,7 @@ def design_plan(model: FaceModel, ref: Reference, dus, *, lifts=HOLD_LIFTS, tail
 
 
 def commands_matrix(rows: pd.DataFrame, dus, n_frames: int, fps: float) -> np.ndarray:
-    """Commands (n_frames, n_dus) of ``rows`` at the frames (docs/format.md sampling)."""
+    """Commands (n_frames, n_dus) of ``rows`` at the frames (FORMAT.md sampling)."""
     from mocap.schedules import sample_commands
 
     return sample_commands(rows, list(dus), np.arange(n_frames) / fps)
@@ -1026,7 +1026,7 @@ def tracking_floor(ref: Reference, command_times_s: np.ndarray, fps: float,
     lowest displacement after the motion is ``set_level`` (mean normalised displacement at
     command 0 after the full motion: the set a hysteresis leaves; 0 for none).
 
-    A frame at t is driven by the last row at or before t (docs/format.md), so a face without dynamics
+    A frame at t is driven by the last row at or before t (FORMAT.md), so a face without dynamics
     holds every marker's normalised displacement, and their mean, constant between two rows: the
     best constant over a step is the plan's mean over that step's frames, and over the fall no
     lower than the set (on the way down a play-type hysteresis is lowest at command 0). The RMS

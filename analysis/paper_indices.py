@@ -1,8 +1,8 @@
-"""The paper's static-response indices computed literally (its "Static response"; docs/indices.md).
+"""The paper's static-response indices computed literally (METHOD.md, "Static response").
 
 This module is the paper's recipe and nothing else: no noise handling, no smoothing. Its numbers
 are what properties.csv reports as ``alpha_fwd, beta_fwd, alpha_bwd, beta_bwd, sensitivity,
-hysteresis, dyssynchrony_raw, linearity_mean`` (docs/outputs.md). The estimates of what this recipe
+hysteresis, dyssynchrony_raw, linearity_mean`` (OUTPUTS.md). The estimates of what this recipe
 gives on noise-free positions are in ``mocap.analysis.noise_corrected``.
 
 Time axis (the schedule's, read from the take's command rows, :func:`schedule_timing`):

@@ -1,4 +1,4 @@
-"""Motion plans P(t) of the paper (plans A-E): neutral (0) to smile (1).
+"""Motion plans P(t) of the paper (METHOD.md, plans A-E): neutral (0) to smile (1).
 
 ``t`` and ``T`` share any time unit (frames or seconds); P is clipped to [0, 1] outside.
 """

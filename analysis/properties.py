@@ -1,4 +1,4 @@
-"""The paper's static response properties per DU (its "Static response"; docs/indices.md).
+"""The paper's static response properties per DU (METHOD.md, "Static response").
 
 Segmentation: the forward (rising) and backward (falling) ramps are found from the command
 series: their step changes are fitted by a straight line ``c(t) = p0 + p1 t`` (for the paper's
@@ -8,7 +8,7 @@ first change to one step after its last (so both end plateaus are included).
 Fits: the normalised displacement delta_m(t) of the markers kept (not rejected) in a window is
 fitted against time by a logistic ``1 / (1 + exp(-a (t - b)))`` pooled over the markers (and per
 marker), then converted to command with the ramp's line: ``alpha = a / p1``, ``beta = p0 +
-p1 b`` (the paper's t = T_s c / 255 for the paper's schedule).
+p1 b`` (METHOD.md's t = T_s c / 255 for the paper's schedule).
 
 Indices: sensitivity alpha_n = (alpha_fwd + alpha_bwd) / 2; hysteresis beta_fwd - beta_bwd
 (command units; positive when the backward curve stays high); dyssynchrony gamma = the mean over
@@ -25,7 +25,7 @@ fully near rest and not at all on the plateau; subtracting it at full weight at 
 an earlier version did) over-corrected, by 13-17 % where the true spread is small.
 
 The fits use ``delta_along`` when given (the displacement along each marker's principal
-direction, whose noise has zero mean), the paper's |d| / max |d| otherwise.
+direction, whose noise has zero mean), METHOD.md's |d| / max |d| otherwise.
 
 Uncertainty: a bootstrap over markers (``n_boot`` replicates, markers resampled with
 replacement, the pooled fits redone as weighted fits) gives 2.5 / 97.5 % intervals.

@@ -17,7 +17,7 @@ def sigmoid(c, alpha, beta):
 
 
 def inverse_sigmoid(delta, alpha, beta, *, eps: float = 1e-6):
-    """c = beta - ln((1 - delta) / delta) / alpha (the paper; docs/indices.md), delta clipped to [eps, 1 - eps].
+    """c = beta - ln((1 - delta) / delta) / alpha (METHOD.md), delta clipped to [eps, 1 - eps].
 
     Returns command units as floats (not rounded or clipped to 0..255).
     """

@@ -1,4 +1,4 @@
-"""``calibration.toml`` (docs/outputs.md) read and write.
+"""``calibration.toml`` (OUTPUTS.md) read and write.
 
 One ``[[cameras]]`` table per camera (``id``, ``width``, ``height``, ``K``, ``dist``, ``R``,
 ``t``) and an optional ``[quality]`` table of scalars, lists and per-camera sub-tables. Floats
@@ -18,7 +18,7 @@ from mocap.atomic import write_text
 
 
 class CalibrationFileError(ValueError):
-    """A calibration file that does not follow docs/outputs.md; the message names file and key."""
+    """A calibration file that does not follow OUTPUTS.md; the message names file and key."""
 
 
 def _value(v: Any) -> str:

@@ -1,8 +1,8 @@
-"""Command schedules: the paper's trapezoid and the identification battery, as docs/format.md rows.
+"""Command schedules: the paper's trapezoid and the identification battery, as FORMAT.md rows.
 
 A schedule is a pandas DataFrame with columns ``time_s`` (float, s from the take's first frame),
 ``du`` (int) and ``command`` (int, 0..255), one row per command change; the command of ``du``
-holds until its next row and is 0 before its first row (docs/format.md, "Command files").
+holds until its next row and is 0 before its first row (FORMAT.md, "Command files").
 
 Step commands follow the paper: ``c_s = 255 s / n_ramp`` rounded half up (13, 26, 38, ...).
 """
@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-TIME_TOL_S = 1e-9  # docs/format.md: frame f is driven by the last row with time_s <= f / fps (+ 1e-9)
+TIME_TOL_S = 1e-9  # FORMAT.md: frame f is driven by the last row with time_s <= f / fps (+ 1e-9)
 COLUMNS = ["time_s", "du", "command"]
 
 
@@ -87,7 +87,7 @@ def duration_s(rows: pd.DataFrame, tail_s: float = 0.0) -> float:
 
 
 def sample_commands(rows: pd.DataFrame, dus: Sequence[int], times_s) -> np.ndarray:
-    """Command of each DU at each time, per docs/format.md (last row with time_s <= t + 1e-9).
+    """Command of each DU at each time, per FORMAT.md (last row with time_s <= t + 1e-9).
 
     Parameters
     ----------
@@ -161,9 +161,9 @@ def identification_battery(dus: Sequence[int], pairs: Sequence[tuple[int, int]] 
     return takes
 
 
-# The paper's time axis of a trapezoid take (the paper's windows and t -> c conversion, docs/indices.md)
+# The paper's time axis of a trapezoid take (reference METHOD.md: windows and t -> c conversion)
 
-TIME_TOL_S = 1e-9  # frames within this of a window's edge are inside it (docs/format.md's tolerance)
+TIME_TOL_S = 1e-9  # frames within this of a window's edge are inside it (FORMAT.md's tolerance)
 
 
 @dataclass(frozen=True)
@@ -213,7 +213,7 @@ def schedule_timing(time_s, command, *, source: str = "command rows") -> Schedul
     """The paper's time axis from one DU's command rows (a trapezoid: rise, hold, fall to 0).
 
     time_s, command : (n_rows,) the rows of one DU (any order; for equal times the later row
-    wins, as docs/format.md says). Raises ValueError naming ``source`` when the rows are not a
+    wins, as FORMAT.md says). Raises ValueError naming ``source`` when the rows are not a
     rising ramp of several steps, a hold at the top, and a falling ramp back to 0.
     """
     t = np.asarray(time_s, float)
@@ -227,7 +227,7 @@ def schedule_timing(time_s, command, *, source: str = "command rows") -> Schedul
     change = np.r_[True, np.diff(c) != 0]  # rows that change the command (repeats add nothing)
     t, c = t[change], c[change]
     if c.size == 0 or c[0] != 0:
-        c = np.r_[0.0, c]  # the command is 0 before a DU's first row (docs/format.md)
+        c = np.r_[0.0, c]  # the command is 0 before a DU's first row (FORMAT.md)
         t = np.r_[-np.inf, t]
     top = float(c.max())
     i_top = int(np.argmax(c == top))

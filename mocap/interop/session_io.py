@@ -1,4 +1,4 @@
-"""Vendor files to a labeled docs/format.md session, and a run's (or a 3D session's) takes to C3D.
+"""Vendor files to a labeled FORMAT.md session, and a run's (or a 3D session's) takes to C3D.
 
 Import: each file becomes a 3D take (``takes/<stem>.csv``) of a new session; markers keep their
 labels (the union over files; a marker a file lacks is a gap there, noted); all files must share

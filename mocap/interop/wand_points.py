@@ -1,4 +1,4 @@
-"""Other labs' wand recordings to a docs/format.md session of unlabeled 2D blobs.
+"""Other labs' wand recordings to a FORMAT.md session of unlabeled 2D blobs.
 
 Two layouts are read:
 
@@ -7,7 +7,7 @@ Two layouts are read:
   ``Status`` column is present only its ``Raw`` rows are taken: every blob the detector found,
   reflections and split blobs included (the ``Filtered_*`` rows are the recording tool's own
   choice of wand blobs, which the calibration must make by itself). X and Y are pixels with the
-  origin at the top-left pixel's centre, as docs/format.md's.
+  origin at the top-left pixel's centre, as FORMAT.md's.
 - **DLTdv / easyWand / Argus point files** (``*xypts.csv``): one row per frame, columns
   ``pt<k>_cam<c>_X, pt<k>_cam<c>_Y`` for wand end ``k`` (1, 2) and camera ``c``, NaN where the
   point was not digitised. Their pixel origin is the bottom-left, 1-based as MATLAB's (DLTdv):
@@ -109,7 +109,7 @@ def _camera_id(v) -> str:
 
 def read_xypts(path: str | os.PathLike, heights: dict[str, int]) -> pd.DataFrame:
     """A DLTdv/easyWand ``xypts.csv``: every digitised point as a blob (frame, camera, x, y),
-    converted to docs/format.md's top-left origin; ``heights`` gives each camera's (``cam<c>``)
+    converted to FORMAT.md's top-left origin; ``heights`` gives each camera's (``cam<c>``)
     image height, px."""
     path = Path(path)
     df = pd.read_csv(path)

@@ -1,4 +1,4 @@
-"""Displacement vectors and their normalisation (the paper, "Spatial properties"); used by trial
+"""Displacement vectors and their normalisation (METHOD.md, "Spatial properties"); used by trial
 averaging (here) and the analyses (re-exported by ``mocap.analysis.displacement``).
 
 d_m(t) = v_m(t) - v_m(0); delta_m(t) = |d_m(t)| / max_t |d_m(t)| (``normalized``), and the

@@ -1,6 +1,6 @@
 """The virtual face and camera rig: sessions with known truth and hidden effects.
 
-``simulate(preset("small", seed=1), "out/")`` writes ``out/session`` (docs/format.md) and
+``simulate(preset("small", seed=1), "out/")`` writes ``out/session`` (FORMAT.md) and
 ``out/truth`` (never read by the pipeline). See ``face`` (the true face), ``families`` (base-face
 families: hysteresis operators and marker paths the analysis model does not share),
 ``hysteresis_ops`` (the operators), ``effects`` (hidden effects and their equations), ``rig``

@@ -1,6 +1,6 @@
 """The virtual face's deformation units (DUs): names, actuators and nominal response.
 
-DU names follow the paper; the paper's text does not name DUs 8, 9, 10, 13 and 14, so the package
+DU names follow METHOD.md; the paper's text does not name DUs 8, 9, 10, 13 and 14, so the package
 names them after common android-face actuators (nose wing raising, upper lip raising, mouth corner
 pulling back, lip pursing, mouth corner lowering) and says so here.
 
@@ -11,7 +11,7 @@ spatial decay (Gaussian), ``alpha`` (1/command unit) and ``beta`` (command units
 nominal sensitivity and bias, ``hysteresis`` the full-sweep loop width (command units: forward
 minus backward bias), ``spread_beta`` the per-marker standard deviation of the bias (command
 units: what makes a DU's dyssynchrony). Feedback DUs (1, 2, 12) have alpha < 0.03; DUs 1 and 12
-small hysteresis, every other DU 40 to 90 (the paper, "Property chart"). The paper's indices as
+small hysteresis, every other DU 40 to 90 (METHOD.md, "Property chart"). The paper's indices as
 measured (pooled fits of the normalised response) come out a little above the nominal alpha,
 so the feedback DUs' nominal alphas sit at 0.021 to 0.023.
 """

@@ -1,6 +1,6 @@
 """Hidden effects: what the true virtual face does beyond the paper's static model.
 
-Each effect has a stable keyword (docs/outputs.md's effect names), one parameter with a default
+Each effect has a stable keyword (OUTPUTS.md's effect names), one parameter with a default
 strength, and an equation. It is applied to the true face only; the pipeline never sees it.
 The true response of a take is computed in three stages (``mocap.simulate.motion``):
 

@@ -1,4 +1,4 @@
-"""Make a whole virtual session: ``OUT_DIR/session`` (docs/format.md) and ``OUT_DIR/truth``.
+"""Make a whole virtual session: ``OUT_DIR/session`` (FORMAT.md) and ``OUT_DIR/truth``.
 
 ``truth/`` is never read by the pipeline. It holds:
 
@@ -302,7 +302,7 @@ def simulate(cfg: SimConfig, out_dir: str | Path,
         write_calibration(truth / "cameras.toml", rig, header={"source": "facemocap simulator truth"})
     markers_rng = np.random.default_rng([cfg.seed, 7])
     approx = face.rest_mm + markers_rng.normal(0.0, 1.0, face.rest_mm.shape)
-    if not cfg.ground and not cfg.labeled:  # docs/format.md: the world frame is the first camera's
+    if not cfg.ground and not cfg.labeled:  # FORMAT.md: the world frame is the first camera's
         approx = rig[0].world_to_camera(approx)
     write_csv(pd.DataFrame({"name": face.marker_names, "x": approx[:, 0], "y": approx[:, 1],
                             "z": approx[:, 2]}), sess / "markers.csv", decimals=2)

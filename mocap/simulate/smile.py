@@ -1,7 +1,7 @@
 """The paper's smile design as the simulated motion takes play it (the simulator's own copy).
 
 The analysis has its own design code; the simulator does not import it (its truth is made
-separately). Plans P(s), s = t / T in [0, 1] (the paper's plans A-E)::
+separately). Plans P(s), s = t / T in [0, 1] (METHOD.md, plans A-E)::
 
     A  1 - e^{-18 s} (1 + 18 s)      B  1 - e^{-7 s} (1 + 7 s)      C  s
     D  e^{-7 u} (1 + 7 u)            E  e^{-18 u} (1 + 18 u),  u = 1 - s
