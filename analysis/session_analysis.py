@@ -1,4 +1,4 @@
-"""All of the paper's analyses for one session, from the trial-averaged responses.
+"""All of the paper's analyses (docs/indices.md) for one session, from the trial-averaged responses.
 
 Pure computation: takes the reconstruction's results, returns tables and fitted models; the
 pipeline writes them (properties.csv, linearity.csv, marker_properties.csv, figures).
@@ -27,6 +27,7 @@ from mocap.analysis.noise.corrected import (
 from mocap.analysis.paper.indices import paper_indices, timing_from_series
 from mocap.analysis.design.plans import PLAN_NAMES
 from mocap.analysis.paper.properties import du_properties
+from mocap.core.display import Summarised, Summary
 
 MIN_STEP_DOF = 30  # in-take noise covariance needs this many degrees of freedom per marker
 MIN_SNR = 20.0  # a marker enters the response fits when its peak is 20 x its trial mean's noise
@@ -54,9 +55,14 @@ class MotionResult(NamedTuple):
     evaluation: MotionEvaluation
 
 
-@dataclass(frozen=True)
-class SessionAnalysis:
-    """The paper's analyses of a session.
+# the columns a printed result shows (all of them are in .properties)
+SUMMARY_COLUMNS = ("du", "name", "sensitivity", "hysteresis", "dyssynchrony", "linearity_mean")
+
+
+@dataclass(frozen=True, repr=False)
+class Analysis(Summarised):
+    """The paper's analyses of a session: what ``mocap.analyze`` returns and
+    ``RunResult.analysis`` holds.
 
     properties : one row per DU (properties.csv); linearity : per (DU, marker) (linearity.csv);
     marker_properties : per (DU, marker) along-path fits; du : DU -> its DUProperties (the
@@ -64,7 +70,9 @@ class SessionAnalysis:
     bool, markers in the along-path fits;
     fields_mm : DU -> (M, 3) mean displacement at full command (mm); motions : the motion takes
     evaluated against their plans (``evaluate_plan_take``), added by the composer; paper : DU ->
-    its PaperIndices (the paper's recipe, ``mocap.analysis.paper.indices``).
+    its PaperIndices (the paper's recipe, ``mocap.analysis.paper.indices``); trials : the
+    trials analysed (``mocap.workflows.run.pipeline.Trials``: averages, responses, rejections), set by the
+    composer.
     """
 
     properties: pd.DataFrame
@@ -76,6 +84,26 @@ class SessionAnalysis:
     fields_mm: Mapping[int, np.ndarray]
     motions: tuple[MotionResult, ...] = ()
     paper: Mapping | None = None  # du -> PaperIndices (the paper's recipe, mocap.analysis.paper.indices)
+    trials: object | None = None  # mocap.workflows.run.pipeline.Trials
+
+    @property
+    def rejections(self) -> pd.DataFrame | None:
+        """rejections.csv's rows (the trials'; None when ``trials`` is not set)."""
+        return None if self.trials is None else self.trials.rejections
+
+    def _summary(self) -> Summary:
+        shown = [m.take + f" (plan {m.plan})" for m in self.motions[:6]]
+        lines = [("DUs", ", ".join(str(d) for d in self.properties["du"]) or "none"),
+                 ("motions", ", ".join(shown) + (" ..." if len(self.motions) > 6 else "")
+                  if shown else "none evaluated")]
+        if self.trials is not None:
+            lines.append(("rejections", str(len(self.trials.rejections))))
+        return Summary(f"Analysis: {len(self.properties)} DUs, {len(self.motions)} motion takes",
+                       tuple(lines), self.properties[[c for c in SUMMARY_COLUMNS
+                                                      if c in self.properties.columns]],
+                       "properties (one row per DU; all columns: .properties)",
+                       "attributes: .properties .linearity .marker_properties .rejections "
+                       ".motions .paper .du .trials")
 
 
 def delta_noise_variance(delta: np.ndarray, command: np.ndarray) -> np.ndarray:
@@ -130,7 +158,7 @@ def kept_markers(rejections: pd.DataFrame, names, du: int | None) -> np.ndarray:
 
 def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
                       *, n_boot: int = 200, noise_mm: np.ndarray | None = None,
-                      noise_cov_mm2: np.ndarray | None = None, jobs: int = 1) -> SessionAnalysis:
+                      noise_cov_mm2: np.ndarray | None = None, jobs: int = 1) -> Analysis:
     """Linearity, fitted responses and indices for every DU's averaged response.
 
     One naming rule (docs/outputs.md): the plain columns (``alpha_fwd`` ... ``hysteresis``,
@@ -273,7 +301,7 @@ def analyze_responses(averages, names, rejections: pd.DataFrame, du_names: dict,
         c for c in (prop_rows[0].keys() if prop_rows else []) if c not in PROPERTY_COLUMNS])
     linearity = pd.DataFrame(lin_rows, columns=["du", "marker", "linearity", "max_displacement_mm",
                                                 "linearity_corrected", "kept"])
-    return SessionAnalysis(properties, linearity, pd.DataFrame(marker_rows), du_props, keeps,
+    return Analysis(properties, linearity, pd.DataFrame(marker_rows), du_props, keeps,
                            fitted, fields, paper=papers)
 
 

@@ -19,6 +19,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from mocap.core.display import Summarised, Summary
+
 
 def _readonly(a, shape: tuple[int, ...], name: str) -> np.ndarray:
     arr = np.array(a, dtype=float)
@@ -278,8 +280,8 @@ class Camera:
         return cls(id=id, width=width, height=height, K=K, dist=dist, R=R, t=-R @ c)
 
 
-@dataclass(frozen=True)
-class CameraRig:
+@dataclass(frozen=True, repr=False)
+class CameraRig(Summarised):
     """An ordered set of cameras with unique ids."""
 
     cameras: tuple[Camera, ...]
@@ -297,6 +299,14 @@ class CameraRig:
 
     def __iter__(self):
         return iter(self.cameras)
+
+    def _summary(self) -> Summary:
+        import pandas as pd
+
+        rows = [{"id": c.id, "width": c.width, "height": c.height, "focal_px": float(c.K[0, 0]),
+                 "distance_mm": float(np.linalg.norm(c.center))} for c in self.cameras]
+        return Summary(f"CameraRig: {len(self.cameras)} cameras", (), pd.DataFrame(rows),
+                       "cameras", "attributes: .cameras (Camera: K, dist, R, t) .ids")
 
     def __getitem__(self, key: int | str) -> Camera:
         if isinstance(key, str):

@@ -53,13 +53,14 @@ from mocap.calib.triangulation import triangulate
 from mocap.calib.wand import WandObservations, find_wand
 from mocap.calib.wand_ends import label_ends
 from mocap.calib.world_frame import GroundFit, fit_ground, transform_rig
+from mocap.core.display import Summarised, Summary
 
 __all__ = ["CalibrationError", "CalibrationResult", "IntrinsicsModel", "calibrate",
            "calibrate_session"]
 
 
-@dataclass(frozen=True)
-class CalibrationResult:
+@dataclass(frozen=True, repr=False)
+class CalibrationResult(Summarised):
     """A calibrated rig in the world frame, with everything that produced it."""
 
     rig: CameraRig
@@ -74,6 +75,22 @@ class CalibrationResult:
     # (n_cameras * 13, n_cameras * 13): the bundle adjustment's parameters (rvec, t mm, f, cx,
     # cy, k1, k2, p1, p2 per camera) in the first camera's frame, before any ground transform
     camera_covariance: np.ndarray | None = None
+
+    def _summary(self) -> Summary:
+        q = self.quality
+        per_cam = q.get("reprojection_rms_px") or {}
+        lines = [("rating", str(q.get("rating", "?"))),
+                 ("reprojection", f"{q.get('reprojection_rms_px_all', float('nan')):.3g} px rms"),
+                 ("wand length", f"{q.get('wand_length_mm', float('nan')):g} mm, error "
+                                 f"{q.get('wand_length_error_mean_mm', float('nan')):.2g} +- "
+                                 f"{q.get('wand_length_error_sd_mm', float('nan')):.2g} mm"),
+                 ("sightings", f"{int(np.sum(self.used))} of {len(self.used)} used"),
+                 ("world frame", str(q.get("world_frame", "?")))]
+        if per_cam:
+            lines.append(("per camera", ", ".join(f"{k} {v:.3g}" for k, v in
+                                                   list(per_cam.items())[:12]) + " px"))
+        return Summary(f"CalibrationResult: {len(self.rig)} cameras", tuple(lines),
+                       more="attributes: .rig .quality .residuals_px .wand .ground")
 
 
 def select_frames(obs: WandObservations, max_frames: int = 3600, per_camera: int = 120) -> np.ndarray:

@@ -39,4 +39,6 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(list(globals()) + __all__)
+    # the API, the version and the subpackages already imported; not this file's helpers
+    public = {n for n in globals() if not n.startswith("_")}
+    return sorted(public | set(__all__) | {"__version__"})

@@ -4,10 +4,11 @@ and nothing points outside the repository (issue #18)."""
 from __future__ import annotations
 
 import argparse
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
-
-
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -52,6 +53,78 @@ def test_the_import_page_matches_the_importer(tmp_path):
         ("rest", "rest", None, None, None), ("du1_t1", "response", 1, 1, None),
         ("du1_t2", "response", 1, 2, None), ("smile_A", "motion", None, None, "A")]
     assert plan.takes[1].commands == tmp_path / "commands" / "smile_DU1_trial1_commands.csv"
+def readme_python() -> str:
+    """The README's "From Python" example: the indented block under that heading."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = re.search(r"^## From Python.*?\n\n((?:    .*\n|\n)+)", text, flags=re.M)
+    assert section, "README.md: no indented code block under '## From Python'"
+    return "\n".join(line[4:] for line in section.group(1).splitlines()).strip() + "\n"
+
+
+def test_the_readme_python_block_is_found():
+    code = readme_python()
+    assert code.startswith("import mocap\n") and "mocap.run(session" in code
+    compile(code, "README.md", "exec")
+
+
+def _readme_folder(tmp_path: Path, sim: Path) -> Path:
+    """A working folder where the README's ``sample_data/session`` is a small simulated
+    session (the README's code is run unchanged, on less data than the sample's)."""
+    cwd = tmp_path / "cwd"
+    (cwd / "sample_data").mkdir(parents=True)
+    (cwd / "sample_data" / "session").symlink_to(sim / "session", target_is_directory=True)
+    return cwd
+
+
+def test_the_readme_python_example_runs_as_a_plain_script(tiny_sim, tmp_path):
+    """The README's lines pasted into ``analyse.py`` (no main guard) and run with ``python
+    analyse.py``: exit 0, the outputs written."""
+    cwd = _readme_folder(tmp_path, tiny_sim)
+    (cwd / "analyse.py").write_text(readme_python(), encoding="utf-8")
+    proc = subprocess.run([sys.executable, "analyse.py"], cwd=cwd, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    props = (cwd / "out" / "sample" / "properties.csv").read_text().splitlines()
+    assert props[0].startswith("du,") and len(props) == 3  # DUs 4 and 7
+
+
+# A notebook's way of running code, for where Jupyter is not installed: a fresh interpreter
+# whose __main__ is a module without a file (as ipykernel's), each statement a cell compiled
+# under an ipykernel-like file name, and each expression's value displayed as a notebook
+# does (its _repr_html_ when it has one, else its repr).
+NOTEBOOK = r"""
+import ast, json, sys, types
+main = types.ModuleType("__main__")
+main.__dict__["__builtins__"] = __builtins__
+sys.modules["__main__"] = main
+shown = []
+tree = ast.parse(sys.stdin.read())
+for i, node in enumerate(tree.body):
+    if isinstance(node, ast.Expr):
+        value = eval(compile(ast.Expression(node.value), f"/tmp/ipykernel_0/{i}.py", "eval"),
+                     main.__dict__)
+        html = getattr(value, "_repr_html_", None)
+        shown.append({"line": node.lineno, "type": type(value).__name__,
+                      "repr": len(repr(value)), "html": len(html() or "") if html else None})
+    else:
+        exec(compile(ast.Module([node], []), f"/tmp/ipykernel_0/{i}.py", "exec"), main.__dict__)
+json.dump(shown, sys.stdout)
+"""
+
+
+def test_the_readme_python_example_runs_in_a_notebook(tiny_sim, tmp_path):
+    """The same lines run as notebook cells (no jupyter needed: see NOTEBOOK): each displayed
+    value fits on a screen."""
+    cwd = _readme_folder(tmp_path, tiny_sim)
+    proc = subprocess.run([sys.executable, "-c", NOTEBOOK], input=readme_python(), cwd=cwd,
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    shown = json.loads(proc.stdout)
+    assert [s["type"] for s in shown] == ["DataFrame", "DataFrame", "ndarray", "RunResult"]
+    assert (cwd / "out" / "sample" / "properties.csv").is_file()
+    result = shown[-1]
+    assert result["repr"] < 2000 and result["html"] is not None and result["html"] < 20000
 
 
 def test_python_blocks_are_found():

@@ -16,10 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocap.analysis.paper.displacement import normalized
+from mocap.core.display import Summarised, Summary
 
 
-@dataclass(frozen=True)
-class MotionEvaluation:
+@dataclass(frozen=True, repr=False)
+class MotionEvaluation(Summarised):
     t: np.ndarray  # (n_frames,) s
     ideal: np.ndarray  # (n_frames,)
     mean: np.ndarray  # (n_frames,)
@@ -29,6 +30,15 @@ class MotionEvaluation:
     rms_markers_forward: float
     rms_markers_backward: float
     lag_s: float
+
+    def _summary(self) -> Summary:
+        return Summary(f"MotionEvaluation: {self.t.size} frames",
+                       (("rms", f"forward {self.rms_forward:.3g}, backward "
+                                f"{self.rms_backward:.3g}"),
+                        ("rms markers", f"forward {self.rms_markers_forward:.3g}, backward "
+                                        f"{self.rms_markers_backward:.3g}"),
+                        ("lag", f"{self.lag_s:.3g} s")),
+                       more="attributes: .t .ideal .mean .std (n_frames,)")
 
 
 def realized_delta(X: np.ndarray, command: np.ndarray, smooth_frames: int = 6) -> np.ndarray:

@@ -585,11 +585,9 @@ class _Runner:
         self.data = data
         self.pool = None
         if jobs > 1:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
+            from loky import ProcessPoolExecutor  # never re-runs the caller's __main__
 
-            self.pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"),
-                                            initializer=_init_worker, initargs=(data,))
+            self.pool = ProcessPoolExecutor(jobs, initializer=_init_worker, initargs=(data,))
 
     def base_fits(self, effects, takes_sets) -> list:
         """:func:`fit_base` on each set of takes: FaceModels, one after the other without a

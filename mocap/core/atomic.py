@@ -1,15 +1,31 @@
 """Atomic file writes: a temporary name beside the target, then ``os.replace``.
 
 An interrupted run never leaves a half-written file under its final name (docs/outputs.md).
+Files and folders are created with the user's umask, like any other program's (0644 and 0755
+under umask 022), so that labmates can read the results.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import Iterator
+
+
+def _new_temporary(folder: Path, name: str) -> Path:
+    """A new empty file ``.<name>.<random>.tmp`` in ``folder``, created with mode 0666 less the
+    umask (``tempfile.mkstemp`` would make it 0600, and the rename would keep that)."""
+    for _ in range(100):
+        tmp = folder / f".{name}.{secrets.token_hex(4)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"{folder}: no free temporary name for {name}")  # pragma: no cover
 
 
 @contextlib.contextmanager
@@ -17,13 +33,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it onto ``path`` on success.
 
     The folder is created when missing. On an exception the temporary file is removed and the
-    target (if it existed) is left untouched.
+    target (if it existed) is left untouched. The file gets the user's umask (0644 under 022).
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = _new_temporary(target.parent, target.name)
     try:
         yield tmp_path
         os.replace(tmp_path, target)
@@ -63,7 +77,7 @@ def write_csv(df, path: str | os.PathLike, decimals: int | None = None) -> Path:
     """Write a pandas DataFrame to CSV atomically (no index, no quoting); return the path.
 
     Float columns are rounded to ``decimals`` when given and written in their shortest exact
-    form; NaN is written as an empty cell (docs/format.md's "not seen"). Uses pyarrow's CSV writer,
+    form; NaN is written as an empty cell ("not seen", docs/format.md). Uses pyarrow's CSV writer,
     about 20 x faster than pandas' for millions of rows.
     """
     import numpy as np

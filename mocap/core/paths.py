@@ -14,7 +14,9 @@ The rules, for an output path ``out`` (a folder or a file):
 - ``out`` is not, and does not contain, an input file the command reads (``import``'s vendor
   files, ``design``'s plan file);
 - ``out`` is not, and does not lie inside, any folder that holds a ``session.toml``: another
-  session is raw data too.
+  session is raw data too;
+- with ``kind`` given, ``out`` is not an existing file where a folder is written (nor the
+  reverse), and no part of its path is an existing file.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ def _within(inner: Path, outer: Path) -> bool:
 
 
 def check_output_path(out: str | os.PathLike, *, sessions: Iterable[str | os.PathLike] = (),
-                      inputs: Iterable[str | os.PathLike] = (), option: str = "--out") -> Path:
+                      inputs: Iterable[str | os.PathLike] = (), option: str = "--out",
+                      kind: str | None = None) -> Path:
     """Refuse an output path under a raw session or onto an input; return it resolved.
 
     Parameters
@@ -50,7 +53,9 @@ def check_output_path(out: str | os.PathLike, *, sessions: Iterable[str | os.Pat
     out : the folder or file the command will write (it need not exist).
     sessions : session folders the command reads.
     inputs : input files the command reads.
-    option : how messages name ``out`` (the command-line option or argument).
+    option : how messages name ``out``: the command-line option or argument, or the Python
+        argument (``out_dir``) when raised from the library.
+    kind : "folder" or "file", what the command writes at ``out`` (None: not checked).
 
     Raises
     ------
@@ -58,6 +63,17 @@ def check_output_path(out: str | os.PathLike, *, sessions: Iterable[str | os.Pat
         Naming ``option``, ``out`` and the session or input it collides with.
     """
     target = _resolved(out)
+    if kind == "folder" and target.exists() and not target.is_dir():
+        raise OutputPathError(f"{option} {out}: is a file, not a folder; give a folder (a new "
+                              "one, or an earlier output folder to update)")
+    if kind == "file" and target.is_dir():
+        raise OutputPathError(f"{option} {out}: is a folder; give the name of the file to write")
+    for parent in target.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputPathError(f"{option} {out}: {parent} is a file, not a folder; "
+                                      "choose a path whose folders are folders")
+            break
     for s in sessions:
         session = _resolved(s)
         if target == session:

@@ -48,6 +48,8 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from mocap.core.display import Summarised, Summary
+
 __all__ = [
     "SCHEMA",
     "TAKE_KINDS",
@@ -214,8 +216,8 @@ class TakeInfo:
     commands_offset_s: float = 0.0
 
 
-@dataclass(frozen=True, eq=False)
-class Session:
+@dataclass(frozen=True, eq=False, repr=False)
+class Session(Summarised):
     """A loaded, manifest-validated capture session; take data is read lazily.
 
     Attributes
@@ -250,6 +252,28 @@ class Session:
     def __getstate__(self) -> dict:
         # pickled to every worker with every take: the commands read so far stay here
         return {**self.__dict__, "_commands": {}}
+
+    def _summary(self) -> Summary:
+        from mocap.core.display import counts
+
+        dus = ", ".join(f"{d.id}" + (f" {d.name}" if d.name else "") for d in self.dus[:8])
+        lines = [("folder", str(self.root)),
+                 ("data", f"{'2D blobs' if self.dimension == '2d' else '3D labeled markers'}, "
+                          f"{self.fps:g} fps"),
+                 ("takes", counts((t.kind for t in self.takes), "takes")),
+                 ("DUs", f"{len(self.dus)}" + (f": {dus}" if dus else "")
+                  + (" ..." if len(self.dus) > 8 else ""))]
+        if self.cameras:
+            lines.append(("cameras", f"{len(self.cameras)}: "
+                                     + ", ".join(c.id for c in self.cameras[:12])
+                                     + (" ..." if len(self.cameras) > 12 else "")))
+        if self.marker_template is not None:
+            lines.append(("markers", f"{len(self.marker_template)} in markers.csv"))
+        if self.warnings:
+            lines.append(("warnings", f"{len(self.warnings)} (.warnings)"))
+        return Summary(f"Session {self.name!r}", tuple(lines),
+                       more="attributes: .takes .dus .cameras .wand .ground .marker_template; "
+                            ".read_take(name) .read_commands(name)")
 
     @property
     def camera_ids(self) -> tuple[str, ...]:

@@ -163,6 +163,12 @@ def _limit_memory(extra_bytes: int) -> None:
 
 
 def _read_c3d_child(path: Path, send, memory_bytes: int) -> None:
+    import faulthandler
+
+    # a crash here is reported by the parent as an error naming the file: the fault handler
+    # inherited from a parent that enabled it (pytest, python -X faulthandler) would only add
+    # a "Fatal Python error" dump and the list of loaded modules to the terminal
+    faulthandler.disable()
     _limit_memory(memory_bytes)
     try:
         outcome = (True, _read_c3d(path))

@@ -34,7 +34,7 @@ def analysis_figures(out: Path, session: Session, recon: Reconstruction, trials:
                      bars: bool | None = False, jobs: int = 1) -> list[Path]:
     """The analyses' figures into ``out/figures`` (docs/outputs.md): per DU its displacement
     field and response curves, the linearity bars, the property chart and one figure per
-    evaluated motion take. ``res``: the run's ``SessionAnalysis``. Drawn on up to ``jobs``
+    evaluated motion take. ``res``: the run's ``Analysis``. Drawn on up to ``jobs``
     processes when there are at least :data:`PARALLEL_MIN_FIGURES` (the paper preset's 39:
     12.6-13.5 s in one process, 9.2-10.2 s on two). Returns the files, in the order above."""
     return _draw_all(analysis_figure_jobs(out, session, recon, trials, res), bars, jobs)
@@ -84,10 +84,11 @@ def _draw_all(todo: list, bars: bool | None, jobs: int) -> list[Path]:
     jobs = max(1, min(int(jobs), len(todo)))
     if jobs == 1 or len(todo) < PARALLEL_MIN_FIGURES:
         return [draw_and_save(*job) for job in progress_bar(todo, len(todo), "figures", bars)]
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+    from loky import ProcessPoolExecutor  # workers that never re-run the caller's __main__
+
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
         futures = [pool.submit(draw_and_save, *job) for job in todo]
         for fut in progress_bar(as_completed(futures), len(futures), "figures", bars):
             fut.result()  # a figure that fails stops the run here, with its error

@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 
 from mocap.reconstruction.settings import LabelSettings
+from mocap.core.display import Summarised, Summary
 
 if TYPE_CHECKING:
     from mocap.reconstruction.correspondence import Points3D
@@ -68,8 +69,8 @@ class TakeStats:
     matched_blobs: int = 0
 
 
-@dataclass(frozen=True)
-class LabeledTake:
+@dataclass(frozen=True, repr=False)
+class LabeledTake(Summarised):
     """Dense labeled trajectories of one take.
 
     X : (n_frames, n_markers, 3) mm, NaN where not reconstructed; n_cameras : (n_frames,
@@ -87,6 +88,16 @@ class LabeledTake:
     stats: TakeStats
     views: np.ndarray | None = None
     blob_marker: np.ndarray | None = None
+
+    def _summary(self) -> Summary:
+        n_frames, n_markers = self.X.shape[:2]
+        seen = np.isfinite(self.X[..., 0])
+        return Summary(f"LabeledTake: {n_frames} frames x {n_markers} markers",
+                       (("seen", f"{seen.mean():.1%} of marker-frames"),
+                        ("stats", f"{self.stats.labeled_points:,} labeled points, "
+                                  f"{self.stats.missing_marker_frames:,} marker-frames missing")),
+                       more="attributes: .X (n_frames, n_markers, 3) mm .n_cameras .residual_px "
+                            ".interpolated .stats")
 
 
 def link_tracklets(frame: np.ndarray, X: np.ndarray, settings: LabelSettings = LabelSettings()) -> np.ndarray:
@@ -267,8 +278,7 @@ def _trajectory_columns(labeled: LabeledTake, marker) -> dict:
 
 
 def trajectories_frame(labeled: LabeledTake, names) -> pd.DataFrame:
-    """Long table per docs/outputs.md: frame, marker, x, y, z, n_cameras, residual_px,
-    interpolated."""
+    """Long table per docs/outputs.md: frame, marker, x, y, z, n_cameras, residual_px, interpolated."""
     n_frames = labeled.X.shape[0]
     return pd.DataFrame(_trajectory_columns(labeled, np.tile(np.asarray(names, dtype=object),
                                                              n_frames)))

@@ -20,6 +20,7 @@ import pandas as pd
 
 from mocap.reconstruction.labeling import LabeledTake, MarkerSet, TakeStats
 from mocap.reconstruction.settings import LabelSettings, ReconstructionSettings
+from mocap.core.display import Summarised, Summary
 
 
 def _readonly(*arrays):
@@ -123,8 +124,8 @@ class LazyTakes(Mapping):
         return len(self._loaders)
 
 
-@dataclass(frozen=True)
-class Reconstruction:
+@dataclass(frozen=True, repr=False)
+class Reconstruction(Summarised):
     """A session's face takes (rest, response, motion) as labeled trajectories.
 
     markers : the session's markers; takes : take name -> LabeledTake, in session order (a
@@ -145,6 +146,20 @@ class Reconstruction:
     @property
     def labeled_points(self) -> int:
         return int(sum(s.labeled_points for s in self.stats.values()))
+
+    def _summary(self) -> Summary:
+        import pandas as pd
+
+        rows = [{"take": n, "labeled_points": s.labeled_points,
+                 "missing_marker_frames": s.missing_marker_frames}
+                for n, s in self.stats.items()]
+        floor = (f"{self.noise_floor_mm:.3g} mm" if self.noise_floor_mm is not None
+                 else "no rest take")
+        return Summary(f"Reconstruction: {len(self.markers.names)} markers, {len(self.takes)} "
+                       "face takes",
+                       (("labeled points", f"{self.labeled_points:,}"), ("noise floor", floor)),
+                       pd.DataFrame(rows), "takes",
+                       "attributes: .takes[name].X (n_frames, n_markers, 3) mm .markers .stats")
 
 
 def gap_counts(missing: np.ndarray) -> np.ndarray:

@@ -38,12 +38,13 @@ import pandas as pd
 from mocap.reconstruction.displacement import normalized, normalized_along, peak_length, principal_direction
 from mocap.core.schedules import ScheduleTiming, timing_from_series
 from mocap.reconstruction.settings import RejectionSettings
+from mocap.core.display import Summarised, Summary
 
 NORMALISE_S = 0.25  # well within the 3 s hold at full command of the paper's schedule
 
 
-@dataclass(frozen=True)
-class TrialAverage:
+@dataclass(frozen=True, repr=False)
+class TrialAverage(Summarised):
     """One DU's averaged response.
 
     command : (n_frames,) the DU's command; mean : (n_frames, M, 3) mm; spread_mm : (n_frames,
@@ -68,6 +69,16 @@ class TrialAverage:
     delta_along: np.ndarray | None = None  # (n_frames, M) along the principal direction
     along_mm: np.ndarray | None = None  # (n_frames, M) displacement along it, mm
     direction: np.ndarray | None = None  # (M, 3) each marker's unit principal direction
+
+    def _summary(self) -> Summary:
+        n_frames, n_markers = self.mean.shape[:2]
+        return Summary(f"TrialAverage of DU {self.du}: {len(self.takes)} trials, {n_frames} "
+                       f"frames x {n_markers} markers at {self.fps:g} fps",
+                       (("takes", ", ".join(self.takes[:8]) + (" ..." if len(self.takes) > 8
+                                                                 else "")),
+                        ("peak", f"{np.nanmax(self.displacement_mm, initial=0):.3g} mm")),
+                       more="attributes: .mean (n_frames, M, 3) mm .command .displacement_mm "
+                            ".delta .trials")
     timing: ScheduleTiming | None = None  # the paper's time axis, from the first take's command rows
 
 

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from mocap.core.session import SessionError
 
     try:
-        check_output_path(args.out, sessions=[args.session_dir])
+        check_output_path(args.out, sessions=[args.session_dir], kind="folder")
         res = run_session(args.session_dir, args.out, settings=RunSettings(analyze=False),
                           progress=lambda m: print(m, file=sys.stderr, flush=True),
                           writers=WRITERS)

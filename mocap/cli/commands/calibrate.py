@@ -59,9 +59,10 @@ def run(args: argparse.Namespace) -> int:
         print(msg, file=sys.stderr, flush=True)
 
     try:
-        check_output_path(args.out, sessions=[args.session_dir])
+        check_output_path(args.out, sessions=[args.session_dir], kind="file")
         if args.opencv_dir is not None:
-            check_output_path(args.opencv_dir, sessions=[args.session_dir], option="--opencv-dir")
+            check_output_path(args.opencv_dir, sessions=[args.session_dir], option="--opencv-dir",
+                              kind="folder")
         session = load_session(args.session_dir)
         if session.dimension != "2d":
             raise CalibrationError(f"{args.session_dir}: a labeled 3D session has no cameras to calibrate")

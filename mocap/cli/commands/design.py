@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
         sources = [args.source, *([args.measured] if args.measured else [])]
         sessions = [s for s in map(session_dir_of, sources) if s]
         inputs = [f for f in (plan_file, args.reference, args.model) if f is not None]
-        check_output_path(args.out, sessions=sessions, inputs=inputs)
+        check_output_path(args.out, sessions=sessions, inputs=inputs, kind="file")
         if args.save_model is not None:
             check_output_path(args.save_model, sessions=sessions, inputs=[*inputs, args.out],
                               option="--save-model")

@@ -79,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
                                    jobs=args.jobs or os.cpu_count() or 1)
     say = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     try:
-        check_output_path(args.out, sessions=[s for s in [session_dir_of(args.path)] if s])
+        check_output_path(args.out, sessions=[s for s in [session_dir_of(args.path)] if s],
+                          kind="folder")
         res = run_workflow(args.path, args.out, settings, progress=say,
                            recording=not args.no_recording, writers=WRITERS)
     except (SessionError, ValueError, OSError) as e:

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {str(e).strip(chr(34) + chr(39))}", file=sys.stderr)
         return 1
     try:
-        check_output_path(args.out, sessions=[args.session_dir])
+        check_output_path(args.out, sessions=[args.session_dir], kind="folder")
         result = run_session(args.session_dir, args.out, progress=None if args.quiet else say,
                              settings=settings, bars=False if args.quiet else None,
                              force=args.force, writers=WRITERS)
@@ -89,8 +89,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     except OSError as e:  # writing the outputs (a full disk, a folder made read-only)
-        print(f"error: {e}\nwhat was finished is kept in {args.out}: the same command "
-              "resumes from it", file=sys.stderr)
+        kept = (f"\nwhat was finished is kept in {args.out}: the same command resumes from it"
+                if Path(args.out).is_dir() and any(Path(args.out).iterdir()) else "")
+        print(f"error: {e}{kept}", file=sys.stderr)
         return 1
     s = result.summary
     a = result.audit or {}

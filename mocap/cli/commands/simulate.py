@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.out_dir
     try:
-        check_output_path(out, inputs=args.commands, option="OUT_DIR")
+        check_output_path(out, inputs=args.commands, option="OUT_DIR", kind="folder")
         if (out / "session" / "session.toml").is_file() and not simulated(out):
             # OUT_DIR/session is a real session, not one this command wrote: --force or not
             raise OutputPathError(f"OUT_DIR {out}: contains the session folder {out / 'session'}, "

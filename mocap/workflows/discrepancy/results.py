@@ -31,8 +31,7 @@ def _r(x, nd=5):
 
 
 def result_json(res: DiscrepancyResult, prep: Prepared, meta: dict) -> dict:
-    """discrepancy.json (docs/outputs.md), plus the localisation and per-DU/marker gaps per
-    stage."""
+    """discrepancy.json (docs/outputs.md, plus the localisation and per-DU/marker gaps per stage)."""
     floor = res.noise_floor_mm
 
     def evidence(items):
@@ -259,6 +258,10 @@ def run(path, out_dir, settings: DiscrepancySettings = DiscrepancySettings(),
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     out = Path(out_dir)
+    from mocap.core.paths import check_output_path, session_dir_of
+
+    check_output_path(out, sessions=[s for s in [session_dir_of(path)] if s], option="out_dir",
+                      kind="folder")
     out.mkdir(parents=True, exist_ok=True)
     ms = load_measured(path, work_dir=out / "reconstruction", progress=say)
     t_load = time.perf_counter() - t0

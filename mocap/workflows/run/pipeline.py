@@ -5,7 +5,7 @@ Stages are pure functions from one typed result to the next:
     Session -> calibrate -> CalibrationResult (raw sessions)
             -> find_markers -> MarkerSet -> reconstruct -> Reconstruction (every face take)
             -> compute_trials -> Trials (averages, responses, rejections)
-            -> analyze_session -> SessionAnalysis (the paper's analyses, motion evaluations)
+            -> analyze_session -> Analysis (the paper's analyses, motion evaluations)
             -> audit_capture -> the audit report
 
 ``run`` joins them and returns one frozen :class:`RunResult`. Without an output folder it
@@ -33,8 +33,10 @@ import numpy as np
 import pandas as pd
 
 from mocap import __version__
+from mocap.analysis.session_analysis import SUMMARY_COLUMNS, Analysis
 from mocap.core.atomic import write_csv, write_parquet, write_text
 from mocap.calib.camera import CameraRig
+from mocap.core.display import Summarised, Summary, table_of
 from mocap.core.paths import check_output_path
 from mocap.reconstruction.camera_count import usable_positions
 from mocap.reconstruction.labeled_input import dense_from_3d, marker_names_3d
@@ -106,8 +108,8 @@ def progress_bar(iterable, total: int, desc: str, bars: bool | None):
 
 # --- results ---------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class Trials:
+@dataclass(frozen=True, repr=False)
+class Trials(Summarised):
     """Each DU's trials averaged, the responses table and the rejections.
 
     averages : one TrialAverage per DU (ascending); responses : responses.parquet's rows (plus
@@ -118,40 +120,23 @@ class Trials:
     responses: pd.DataFrame
     rejections: pd.DataFrame
 
-
-@dataclass(frozen=True)
-class Analysis:
-    """What :func:`analyze` returns: the trials and the paper's analyses of them (None when the
-    session has no response takes)."""
-
-    trials: Trials
-    results: object | None  # mocap.analysis.session_analysis.SessionAnalysis
-
-    @property
-    def properties(self) -> pd.DataFrame | None:
-        return None if self.results is None else self.results.properties
-
-    @property
-    def linearity(self) -> pd.DataFrame | None:
-        return None if self.results is None else self.results.linearity
-
-    @property
-    def rejections(self) -> pd.DataFrame:
-        return self.trials.rejections
-
-    @property
-    def motions(self) -> tuple:
-        return () if self.results is None else self.results.motions
+    def _summary(self) -> Summary:
+        return Summary(
+            f"Trials: {len(self.averages)} DUs averaged",
+            tuple((f"DU {a.du}", f"{len(a.takes)} trials, {a.command.shape[0]} frames")
+                  for a in self.averages[:16]) +
+            (("rows", f"{len(self.responses)} responses, {len(self.rejections)} rejections"),),
+            more="attributes: .averages .responses .rejections")
 
 
-@dataclass(frozen=True)
-class RunResult:
+@dataclass(frozen=True, repr=False)
+class RunResult(Summarised):
     """Everything a run produced.
 
     session, settings : what ran; calibration : ``CalibrationResult`` (raw sessions) or None;
     reconstruction : every face take's labeled trajectories; trials : averages, responses,
-    rejections; analysis : ``SessionAnalysis`` (None for an audit-only run or without response
-    takes); audit : the audit report (audit.json); summary : summary.json; out_dir : the output
+    rejections; analysis : :class:`Analysis`, what :func:`analyze` returns (None for an
+    audit-only run or without response takes); audit : the audit report (audit.json); summary : summary.json; out_dir : the output
     folder (None: nothing was written); reused, computed : the stages taken from an earlier run
     in ``out_dir`` and those computed (``reconstruct (k of n takes)`` for part of the takes).
     """
@@ -216,6 +201,34 @@ class RunResult:
         df = pd.concat(parts, ignore_index=True)
         return df[["take"] + [c for c in df.columns if c != "take"]]
 
+    def _summary(self) -> Summary:
+        s = self.session
+        where = f"written to {self.out_dir}" if self.out_dir is not None else "nothing written"
+        lines = [("session", f"{s.name!r}: {s.dimension.upper()}, {s.fps:g} fps, "
+                             f"{len(s.takes)} takes, {len(s.dus)} DUs")]
+        if self.calibration is not None:
+            q = self.calibration.quality
+            lines.append(("calibration", f"{q.get('rating', '?')}: reprojection rms "
+                                         f"{q.get('reprojection_rms_px_all', float('nan')):.3g} px, "
+                                         f"{len(self.calibration.rig.ids)} cameras"))
+        r = self.reconstruction
+        lines.append(("reconstruction", f"{len(r.markers.names)} markers, {len(r.takes)} face "
+                                        f"takes, {r.labeled_points:,} labeled points"))
+        if self.trials is not None:
+            lines.append(("trials", f"{len(self.trials.averages)} DUs averaged, "
+                                    f"{len(self.trials.rejections)} rejections"))
+        if self.analysis is not None:
+            lines.append(("motions", f"{len(self.analysis.motions)} plan takes evaluated"))
+        if self.audit:
+            lines.append(("audit", str(self.audit.get("verdict", "?"))))
+        if self.reused:
+            lines.append(("reused", ", ".join(self.reused)))
+        return Summary(f"RunResult ({where})", tuple(lines),
+                       table_of(self.properties, SUMMARY_COLUMNS),
+                       "properties (one row per DU; all columns: .properties)",
+                       "attributes: .properties .linearity .rejections .trajectories .arrays "
+                       ".audit .calibration .analysis .summary")
+
 
 @dataclass(frozen=True)
 class RunWriters:
@@ -223,7 +236,7 @@ class RunWriters:
     None: not written. Each returns the files it wrote.
 
     analysis_figures(out, session, reconstruction, trials, analysis, bars, jobs) -> list[Path]
-        the analyses' figures into ``out/figures`` (``analysis``: ``SessionAnalysis``;
+        the analyses' figures into ``out/figures`` (``analysis``: :class:`Analysis`;
         ``bars``: as :func:`run`'s; ``jobs``: processes it may use, ``RunSettings.jobs``)
     audit_figures(out, audit, reconstruction, calibration) -> list[Path]
         the audit's figures into ``out/figures`` (``calibration`` None for 3D sessions)
@@ -350,14 +363,14 @@ def _map_takes(session, names: list[str], calibration, markers, settings: RunSet
         for name in names:
             yield _one_take(session, name, calibration, markers, settings, name in recorded)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
+
+    from loky import ProcessPoolExecutor  # workers that never re-run the caller's __main__
 
     # a take reads the rig and its quality only: the wand's observations and residuals (2.5 MB
     # on the paper preset, pickled again for every take) stay here
     slim = _RigOnly(calibration.rig, calibration.quality)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
         futures = [pool.submit(_one_take, session, name, slim, markers, settings,
                                name in recorded) for name in names]
         try:
@@ -452,7 +465,7 @@ def compute_trials(session: Session, recon: Reconstruction, settings: RunSetting
 def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
                     settings: RunSettings = RunSettings()):
     """The paper's analyses of the averaged responses, and every plan take (A-E) evaluated
-    against its plan: ``SessionAnalysis``."""
+    against its plan: :class:`Analysis` (``trials`` set)."""
     from mocap.analysis.paper.linearity import position_covariance
     from mocap.analysis.session_analysis import (
         MotionResult,
@@ -491,12 +504,14 @@ def analyze_session(session: Session, recon: Reconstruction, trials: Trials,
             keep &= np.any(fitted, axis=0)
         ev = evaluate_plan_take(X, cmd, rows, session.fps, take.plan, keep)
         motions.append(MotionResult(take.name, take.plan.upper(), ev))
-    return replace(res, motions=tuple(motions))
+    return replace(res, motions=tuple(motions), trials=trials)
 
 
 def analyze(session: Session, reconstruction: Reconstruction, settings: RunSettings | None = None,
             **overrides) -> Analysis:
-    """Trials, rejections and the paper's analyses of a reconstruction; nothing is written.
+    """Trials, rejections and the paper's analyses of a reconstruction (:class:`Analysis`, the
+    type :attr:`RunResult.analysis` holds; empty tables without response takes); nothing is
+    written.
 
     ``overrides``: settings by name (``bootstrap_samples=0``, ``min_displacement_mm=0.1``...).
     """
@@ -504,8 +519,7 @@ def analyze(session: Session, reconstruction: Reconstruction, settings: RunSetti
 
     settings = with_values(settings or RunSettings(), overrides, "analyze()")
     trials = compute_trials(session, reconstruction, settings)
-    results = analyze_session(session, reconstruction, trials, settings) if trials.averages else None
-    return Analysis(trials, results)
+    return analyze_session(session, reconstruction, trials, settings)
 
 
 # --- outputs ---------------------------------------------------------------------------------
@@ -772,10 +786,12 @@ class _Composer:
 
         analysis = None
         if trials.averages and settings.analyze:
-            analysis = self.stage(
-                "analyze", lambda: analyze_session(session, recon, trials, settings),
+            analysis = self.stage(  # stored without its trials (the trials stage has them)
+                "analyze", lambda: replace(analyze_session(session, recon, trials, settings),
+                                           trials=None),
                 lambda res: write_analysis(out, session, recon, trials, res, self.bars,
                                            self.writers.analysis_figures, settings.jobs))
+            analysis = replace(analysis, trials=trials)
             stages.append("analyze")
             say(f"analyses: {len(trials.averages)} DUs, {len(analysis.motions)} motion takes evaluated")
 
@@ -885,7 +901,7 @@ def run(session: Session, out_dir: str | Path | None = None,
     from mocap.workflows.run.lock import RunLock
 
     out = Path(out_dir)
-    check_output_path(out, sessions=[session.root])
+    check_output_path(out, sessions=[session.root], option="out_dir", kind="folder")
     out.mkdir(parents=True, exist_ok=True)
     with RunLock(out) as lock:
         if lock.note:
