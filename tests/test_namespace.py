@@ -25,7 +25,7 @@ def test_subpackages_import_under_mocap(tmp_path):
              "print(c.__file__); print(f.__file__)", tmp_path)
     assert r.returncode == 0, r.stderr
     cam, face = r.stdout.split()
-    assert Path(cam).parent.name == "calib" and Path(face).parent.name == "analysis"
+    assert Path(cam).parent.name == "calib" and Path(face).parent.parent.name == "analysis"
 
 
 def test_every_package_folder_is_installed():
