@@ -41,6 +41,7 @@ MIN_MOTION_MM = 0.05  # markers that move less are left out of the evaluation (a
 # the model's prediction of the commands it is said to be a play of is another play: the model's
 # own error on a face of another family is a few hundredths, plan A against plan E 0.4
 MAX_TAKE_MISMATCH = 0.12
+NOISE_FRAMES = 3  # frames the measured tracking error is averaged over before its RMS (_evaluate)
 
 
 def _windows(ref: Reference, fps: float, n: int) -> tuple[slice, slice]:
@@ -50,30 +51,62 @@ def _windows(ref: Reference, fps: float, n: int) -> tuple[slice, slice]:
     return window(ref.rise), window(ref.fall)
 
 
-def measured_delta(X: np.ndarray, rows: pd.DataFrame, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """The played take's normalised displacement (n_frames, M) without the bias of noise, and
-    whether each marker moves enough to be evaluated (M,) bool (plateau >= 0.05 mm)."""
+def measured_delta(X: np.ndarray, rows: pd.DataFrame, fps: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The played take's normalised displacement (n_frames, M) without the bias of noise,
+    whether each marker moves enough to be evaluated (M,) bool (plateau >= 0.05 mm), and each
+    marker's noise in normalised units (M,): its noise per axis over its plateau, s_m / n_m
+    (the noise of |d| along the displacement; 0 where nothing was measured)."""
     dus = sorted(int(d) for d in pd.unique(rows["du"]))
-    delta, peak, _ = debiased_delta(X, commands_matrix(rows, dus, X.shape[0], fps),
-                                    max_select_frames=max(6, int(round(SELECT_S * fps))))
-    return delta, np.nan_to_num(peak) >= MIN_MOTION_MM
+    delta, peak, noise = debiased_delta(X, commands_matrix(rows, dus, X.shape[0], fps),
+                                        max_select_frames=max(6, int(round(SELECT_S * fps))))
+    peak = np.nan_to_num(peak)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.where(peak > 0, np.nan_to_num(noise) / np.where(peak > 0, peak, 1.0), 0.0)
+    return delta, peak >= MIN_MOTION_MM, rel
 
 
-def _evaluate(delta: np.ndarray, keep: np.ndarray, fps: float, ref: Reference) -> MotionEvaluation:
+def _evaluate(delta: np.ndarray, keep: np.ndarray, fps: float, ref: Reference,
+              rel_noise: np.ndarray | None = None) -> MotionEvaluation:
+    """The evaluation of ``delta`` against the plan; with ``rel_noise`` (M,) the forward and
+    backward RMS without the variance the markers' noise adds to their mean: the mean's error
+    averaged over :data:`NOISE_FRAMES` frames, whose RMS^2 is the noise-free one plus the
+    averaged noise's variance, sum_m (s_m / n_m)^2 / K^2 over the K markers seen at a frame
+    divided by NOISE_FRAMES, which is subtracted (clipped at 0)."""
+    from dataclasses import replace
+
     n = delta.shape[0]
     t = np.arange(n) / fps
     ideal = np.interp(t, ref.t_s, ref.ideal)
     rise, fall = _windows(ref, fps, n)
-    return evaluate_motion(delta, ideal, fps, rise, fall, keep)
+    ev = evaluate_motion(delta, ideal, fps, rise, fall, keep)
+    if rel_noise is None:
+        return ev
+    seen = np.isfinite(delta[:, keep])
+    K = seen.sum(axis=1)
+    var = np.where(K > 0, (seen * rel_noise[keep][None] ** 2).sum(axis=1) / np.maximum(K, 1) ** 2,
+                   0.0)
+    # the mean's error is smooth where the noise is white: averaged over NOISE_FRAMES frames the
+    # noise's variance drops NOISE_FRAMES-fold, and so does the spread of its subtraction
+    from scipy.ndimage import uniform_filter1d
+
+    e = uniform_filter1d(np.nan_to_num(ev.mean - ev.ideal), NOISE_FRAMES, mode="nearest")
+    var = uniform_filter1d(var, NOISE_FRAMES, mode="nearest") / NOISE_FRAMES
+
+    def rms(sl):
+        return float(np.sqrt(max(np.mean(e[sl] ** 2) - np.mean(var[sl]), 0.0)))
+
+    return replace(ev, rms_forward=rms(rise), rms_backward=rms(fall))
 
 
 def measured_tracking(X: np.ndarray, rows: pd.DataFrame, fps: float,
                       ref: Reference) -> MotionEvaluation:
     """The tracking of a played take against its plan, from the take alone: as
     :func:`mocap.analysis.design.model_based.evaluate_design` evaluates noise-free positions, on
-    the normalised displacement read without the bias of measurement noise."""
-    delta, keep = measured_delta(X, rows, fps)
-    return _evaluate(delta, keep, fps, ref)
+    the normalised displacement read without the bias of measurement noise, and the forward and
+    backward RMS without the variance the noise adds (:func:`_evaluate`)."""
+    delta, keep, rel = measured_delta(X, rows, fps)
+    return _evaluate(delta, keep, fps, ref, rel)
 
 
 def _common(model: FaceModel, names) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +127,7 @@ def take_mismatch(model: FaceModel, rows: pd.DataFrame, X: np.ndarray, names,
     minus the model's prediction of ``rows`` (the markers both have and the take sees move): a
     play of ``rows`` differs by the model's error, a play of other commands by much more
     (:data:`MAX_TAKE_MISMATCH`)."""
-    delta, keep = measured_delta(X, rows, model.fps)
+    delta, keep, _ = measured_delta(X, rows, model.fps)
     ti, mi = _common(model, names)
     pred = predicted_delta(model, rows, X.shape[0], trial)
     k = keep[ti]
@@ -117,12 +150,12 @@ def calibrated_prediction(model: FaceModel, played_rows: pd.DataFrame, X: np.nda
     """The evaluation the next play of ``next_rows`` is predicted to get (module docstring):
     the played take of ``played_rows`` (X (n_frames, M', 3) mm, markers ``names``) plus the
     model's predicted change from the played commands to the next, on the markers both have."""
-    delta, keep = measured_delta(X, played_rows, model.fps)
+    delta, keep, rel = measured_delta(X, played_rows, model.fps)
     ti, mi = _common(model, names)
     n = X.shape[0]
     change = predicted_delta(model, next_rows, n, trial) - predicted_delta(model, played_rows, n,
                                                                            trial)
-    return _evaluate(delta[:, ti] + change[:, mi], keep[ti], model.fps, ref)
+    return _evaluate(delta[:, ti] + change[:, mi], keep[ti], model.fps, ref, rel[ti])
 
 
 def model_prediction(model: FaceModel, rows: pd.DataFrame, ref: Reference, n_frames: int,

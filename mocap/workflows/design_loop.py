@@ -213,6 +213,41 @@ def commands_beside_reference(reference_path) -> Path | None:
     return c if c.is_file() else None
 
 
+def check_take(take, model: FaceModel, ref, markers_w, say) -> None:
+    """Refuse a played take that cannot be a play of its commands on this design: its frame
+    rate (the model's), its length (at least to the end of the plan's return ``ref.fall``), its
+    markers (at least half of those with a weight in ``markers_w`` (M,)), and its motion (its
+    markers' mean within :data:`mocap.analysis.design.refinement.MAX_TAKE_MISMATCH` of the
+    model's prediction of its commands). ValueError naming the take; ``say`` gets notes."""
+    from mocap.analysis.design.refinement import MAX_TAKE_MISMATCH, take_mismatch
+
+    if abs(take.fps - model.fps) > 1e-6:
+        raise ValueError(f"--refine: the take {take.name} is at {take.fps} fps, the model at "
+                         f"{model.fps}")
+    n = take.X.shape[0]
+    need = ref.fall[1]
+    if n / take.fps < need - 1e-9:
+        raise ValueError(f"--refine: the take {take.name} is {n} frames ({n / take.fps:.2f} s at "
+                         f"{take.fps:g} fps); the design's return ends at {need:.2f} s: the take "
+                         "is too short for it (another design's take, or a recording stopped early?)")
+    tracked = [m for m, w in zip(model.marker_names, markers_w) if w > 0]
+    missing = sorted(set(tracked) - set(take.marker_names))
+    if len(missing) * 2 > len(tracked):
+        raise ValueError(f"--refine: the take {take.name} lacks {len(missing)} of the "
+                         f"{len(tracked)} markers the design tracks ({', '.join(missing[:6])}"
+                         f"{'...' if len(missing) > 6 else ''}): another face or labeling?")
+    if missing:
+        say(f"note: the take lacks {len(missing)} tracked markers ({', '.join(missing[:6])}); "
+            "the others teach the refinement")
+    off = take_mismatch(model, take.rows, take.X, take.marker_names, ref)
+    if not off <= MAX_TAKE_MISMATCH:
+        raise ValueError(f"--refine: the take {take.name} does not move as a play of its "
+                         f"commands on plan {ref.label}: its markers' mean departs from the "
+                         f"model's prediction of them by RMS {off:.3f} over the rise and return "
+                         f"(a play departs by the model's error, under {MAX_TAKE_MISMATCH}); was "
+                         "it recorded playing another command file?")
+
+
 # ----------------------------------------------------------------------------------------------
 # the played take, as the lab recorded it
 

@@ -275,38 +275,6 @@ def _read_played(args, dus):
     return take, pc, record, rec_file
 
 
-def _check_take(take, model, ref, dus, markers_w, say):
-    """Refuse a take that cannot be a play of its commands on this design (frame rate, length,
-    markers, and its motion against the model's prediction of the commands)."""
-    from mocap.analysis.design.refinement import MAX_TAKE_MISMATCH, take_mismatch
-
-    if abs(take.fps - model.fps) > 1e-6:
-        raise ValueError(f"--refine: the take {take.name} is at {take.fps} fps, the model at "
-                         f"{model.fps}")
-    n = take.X.shape[0]
-    need = ref.fall[1]
-    if n / take.fps < need - 1e-9:
-        raise ValueError(f"--refine: the take {take.name} is {n} frames ({n / take.fps:.2f} s at "
-                         f"{take.fps:g} fps); the design's return ends at {need:.2f} s: the take "
-                         "is too short for it (another design's take, or a recording stopped early?)")
-    tracked = [m for m, w in zip(model.marker_names, markers_w) if w > 0]
-    missing = sorted(set(tracked) - set(take.marker_names))
-    if len(missing) * 2 > len(tracked):
-        raise ValueError(f"--refine: the take {take.name} lacks {len(missing)} of the "
-                         f"{len(tracked)} markers the design tracks ({', '.join(missing[:6])}"
-                         f"{'...' if len(missing) > 6 else ''}): another face or labeling?")
-    if missing:
-        say(f"note: the take lacks {len(missing)} tracked markers ({', '.join(missing[:6])}); "
-            "the others teach the refinement")
-    off = take_mismatch(model, take.rows, take.X, take.marker_names, ref)
-    if not off <= MAX_TAKE_MISMATCH:
-        raise ValueError(f"--refine: the take {take.name} does not move as a play of its "
-                         f"commands on plan {ref.label}: its markers' mean departs from the "
-                         f"model's prediction of them by RMS {off:.3f} over the rise and return "
-                         f"(a play departs by the model's error, under {MAX_TAKE_MISMATCH}); was "
-                         "it recorded playing another command file?")
-
-
 def _run_model(args, plan, plan_file, dus, timing) -> int:
     import time
     from dataclasses import asdict
@@ -338,6 +306,7 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
         DesignRecord,
         _session_dir,
         check_refinement,
+        check_take,
         commands_sha256,
         file_sha256,
         model_identity,
@@ -402,9 +371,9 @@ def _run_model(args, plan, plan_file, dus, timing) -> int:
                              timing=timing_d, model=model, source_sha256=source_id,
                              reference_path=reference, commands_sha256=commands_sha256(take.rows))
         else:
-            say(f"note: no design record beside the played commands: the take, --reference and "
+            say("note: no design record beside the played commands: the take, --reference and "
                 "the model cannot be checked against the design")
-        _check_take(take, model, ref, dus, weights, say)
+        check_take(take, model, ref, weights, say)
         ev_m = measured_tracking(take.X, take.rows, take.fps, ref)
         ev_p = model_prediction(model, take.rows, ref, n_eval)
         measured = 0.5 * (ev_m.rms_forward + ev_m.rms_backward)
