@@ -100,9 +100,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: 2 when the model has a lag or dead time, else 1)")
     g.add_argument("--model", type=Path, default=None, metavar="FILE",
                    help="use the face model a previous --save-model wrote instead of identifying "
-                        "it again (the same SOURCE's; with --refine repetitions)")
+                        "it again (identified on SOURCE; with --refine repetitions)")
     g.add_argument("--save-model", type=Path, default=None, metavar="FILE",
-                   help="write the identified face model to FILE, for --model")
+                   help="write the identified face model (and the session it was identified "
+                        "on) to FILE, for --model")
     g.add_argument("--jobs", type=int, default=1, help="processes for the discrepancy workflow")
     g.add_argument("--model-from-other-session", action="store_true",
                    help="use a --model identified on another session than SOURCE (refused "
