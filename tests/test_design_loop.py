@@ -246,3 +246,22 @@ def test_a_take_shorter_than_the_design_is_refused(lab, short_designs, tmp_path,
     assert refine(lab, d, "A", "short_A1.c3d", "A1.csv") == 1
     err = capsys.readouterr().err
     assert "short_A1.c3d is 60 frames" in err and "too short" in err, err
+
+
+def test_session_identity_follows_the_recording_not_the_folder(lab, tmp_path):
+    """A session copied elsewhere, or holding a file its manifest does not list, is the same
+    session; one whose take changed by one sample is another."""
+    import shutil
+
+    from mocap.workflows.design_loop import session_identity
+
+    copy = tmp_path / "copy"
+    shutil.copytree(lab.session, copy)
+    assert session_identity(copy) == session_identity(lab.session)
+    (copy / "notes.txt").write_text("robot re-seated\n")
+    assert session_identity(copy) == session_identity(lab.session)
+    take = sorted((copy / "takes").glob("*.parquet"))[0]
+    df = pd.read_parquet(take)
+    df.loc[0, "x"] += 0.001
+    df.to_parquet(take)
+    assert session_identity(copy) != session_identity(lab.session)

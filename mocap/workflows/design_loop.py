@@ -57,14 +57,23 @@ def _session_dir(source) -> Path:
 
 
 def session_identity(source) -> str:
-    """A session's identity (hex): SHA-256 over its manifest and, for every file it lists (the
-    session folder's files, sorted by path), the path, the size and the first and last MiB.
-    Two recordings of the same lab set-up differ in their takes, so they differ here; a session
-    copied elsewhere keeps its identity. ``source``: a session or a 'mocap run' output."""
+    """A session's identity (hex): SHA-256 over its manifest, its marker template and every take
+    and command file the manifest lists: each one's path in the session, size, and first and
+    last MiB. Two recordings of the same lab set-up differ in their takes, so they differ here;
+    a session copied elsewhere keeps its identity, and files the manifest does not list do not
+    count. ``source``: a session or a 'mocap run' output."""
+    from mocap.core.session import MANIFEST, MARKERS_FILE, load_session
+
     root = _session_dir(source).resolve()
+    files = {root / MANIFEST, root / MARKERS_FILE}
+    for t in load_session(root).takes:
+        files.update(f for f in (t.file, t.commands) if f is not None)
     h = hashlib.sha256()
-    for f in sorted(p for p in root.rglob("*") if p.is_file()):
-        rel = f.relative_to(root).as_posix()
+    for f in sorted(p for p in files if p.is_file()):
+        try:
+            rel = f.resolve().relative_to(root).as_posix()
+        except ValueError:
+            rel = f.name
         size = f.stat().st_size
         h.update(f"{rel}\0{size}\0".encode())
         with open(f, "rb") as fh:
