@@ -265,3 +265,25 @@ def test_session_identity_follows_the_recording_not_the_folder(lab, tmp_path):
     df.loc[0, "x"] += 0.001
     df.to_parquet(take)
     assert session_identity(copy) != session_identity(lab.session)
+
+
+def test_refine_from_a_take_csv_of_the_session_format(lab, short_designs, tmp_path, capsys):
+    """A take file of the session format (frame, marker, x, y, z; written here with plain
+    pandas) is a played take as well as a vendor's export; its frame rate is the session's."""
+    d = short_designs
+    rows = pd.read_csv(d / "A1.csv")
+    ref = plan_reference("A", SHORT)
+    _, meas = play_virtual_take(lab.cfg, lab.face, rows, ref.end_s + 0.25, NOISE_MM, seed=77)
+    n, M, _ = meas.shape
+    names = np.array(lab.face.marker_names)
+    table = pd.DataFrame({"frame": np.repeat(np.arange(n), M), "marker": np.tile(names, n),
+                          "x": meas[..., 0].ravel(), "y": meas[..., 1].ravel(),
+                          "z": meas[..., 2].ravel()})
+    table.to_csv(tmp_path / "take_A1.csv", index=False)
+    assert main(["design", str(lab.session), "--plan", "A", "--dus", "1,7,12", "--method", "model",
+                 "--steps", "40", "--model", str(lab.model), "--refine",
+                 str(tmp_path / "take_A1.csv"), "--played-commands", str(d / "A1.csv"),
+                 "--out", str(tmp_path / "A2.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "iteration 0: played take take_A1.csv: measured tracking RMS" in out, out
+    assert (tmp_path / "A2.design.json").is_file()
