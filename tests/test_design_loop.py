@@ -291,9 +291,11 @@ def test_refine_from_a_take_csv_of_the_session_format(lab, short_designs, tmp_pa
 
 @pytest.mark.slow
 def test_every_plan_reaches_a_fifth_of_the_paper_within_five_plays(lab, tmp_path, capsys):
-    """The issue's criterion, through the command line and C3D takes: plans A-E, at most five
-    plays each, the noise-free replay of the last design within 1/5 of the paper method's RMS
-    (its sigmoids the true face's); every printed measured RMS within 20 % of its play's truth."""
+    """The issue's criterion through the command line and C3D takes, plans A-E: at most five
+    plays each (a first design, then refinements from the played takes until one is within
+    1/5 of the paper method's RMS, its sigmoids the true face's; scored on the noise-free
+    replay); no play worse than the first, and every printed measured RMS within 20 % of its
+    play's truth."""
     from mocap.analysis.design.inverse_response import SigmoidPair, paper_design
     from mocap.workflows.truth_properties import true_properties
 
@@ -318,4 +320,6 @@ def test_every_plan_reaches_a_fifth_of_the_paper_within_five_plays(lab, tmp_path
                               "--played-commands", str(tmp_path / f"{plan}{k}.csv")) == 0
             m = printed(capsys.readouterr().out, "measured tracking RMS")
             assert abs(m - history[-1]) <= 0.2 * history[-1], (plan, k, m, history)
+        print(plan, "truth per play / paper", [round(h / (5 * target), 3) for h in history])
         assert history[-1] <= target, (plan, history, target)
+        assert max(history) <= history[0] * 1.05, (plan, history)
