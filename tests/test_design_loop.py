@@ -323,3 +323,37 @@ def test_every_plan_reaches_a_fifth_of_the_paper_within_five_plays(lab, tmp_path
         print(plan, "truth per play / paper", [round(h / (5 * target), 3) for h in history])
         assert history[-1] <= target, (plan, history, target)
         assert max(history) <= history[0] * 1.05, (plan, history)
+
+
+def test_a_take_recording_other_commands_is_refused(lab, short_designs, tmp_path, capsys):
+    """A C3D that records the commands it played (analog channels DU<n>, as 'mocap export'
+    writes them) is checked against --played-commands sample by sample: a play of E1 recorded
+    with its commands, refined as a play of A1, is refused naming the DU and the frame."""
+    import ezc3d
+
+    from mocap.analysis.design.model_based import commands_matrix
+
+    d = short_designs
+    rows = pd.read_csv(d / "E1.csv")
+    ref = plan_reference("E", SHORT)
+    _, meas = play_virtual_take(lab.cfg, lab.face, rows, ref.end_s + 0.25, NOISE_MM, seed=5)
+    path = write_c3d(tmp_path / "take_E1.c3d", lab.face.marker_names, meas, lab.cfg.fps)
+    cmd = commands_matrix(rows, DUS, meas.shape[0], lab.cfg.fps)
+    c = ezc3d.c3d(str(path))
+    c["parameters"]["ANALOG"]["RATE"]["value"] = [float(lab.cfg.fps)]
+    c["parameters"]["ANALOG"]["LABELS"]["value"] = [f"DU{du}" for du in DUS]
+    c["parameters"]["ANALOG"]["UNITS"]["value"] = ["command"] * len(DUS)
+    c["parameters"]["ANALOG"]["SCALE"]["value"] = [1.0] * len(DUS)
+    c["parameters"]["ANALOG"]["OFFSET"]["value"] = [0] * len(DUS)
+    c["parameters"]["ANALOG"]["GEN_SCALE"]["value"] = [1.0]
+    c["data"]["analogs"] = cmd.T[None].astype(float)
+    c.write(str(path))
+    assert main(["design", str(lab.session), "--plan", "A", "--dus", "1,7,12", "--method", "model",
+                 "--steps", "40", "--model", str(lab.model), "--refine", str(path),
+                 "--played-commands", str(d / "A1.csv"), "--out", str(tmp_path / "n.csv")]) == 1
+    err = capsys.readouterr().err
+    assert "take_E1.c3d records DU" in err and "another command file than --played-commands" in err, err
+    # the same file refined as the play of E1 that it is passes the check
+    assert main(["design", str(lab.session), "--plan", "E", "--dus", "1,7,12", "--method", "model",
+                 "--steps", "40", "--model", str(lab.model), "--refine", str(path),
+                 "--played-commands", str(d / "E1.csv"), "--out", str(tmp_path / "n.csv")]) == 0

@@ -302,10 +302,30 @@ def read_take_file(path, rows: pd.DataFrame, session_fps: float):
         names = marker_names_3d([df], None)
         return PlayedTake(p.name, rows, dense_from_3d(df, names).X, tuple(names),
                           float(session_fps))
-    from mocap.interop.session_io import read_any
+    from mocap.interop.session_io import _analog_commands, read_any
 
     data = read_any(p)
+    _check_analog_commands(p, _analog_commands(data), rows, float(data.fps))
     return PlayedTake(p.name, rows, data.X, tuple(data.names), float(data.fps))
+
+
+def _check_analog_commands(path, channels: dict, rows: pd.DataFrame, fps: float) -> None:
+    """A take whose file records the commands (C3D analog channels ``DU<n>``, as 'mocap export'
+    writes them) must record the played ones: ValueError naming the DU and the first frame that
+    differs."""
+    from mocap.core.schedules import sample_commands
+
+    for du, values in sorted(channels.items()):
+        if du not in set(int(d) for d in rows["du"]):
+            continue
+        played = sample_commands(rows, [du], np.arange(len(values)) / fps)[:, 0]
+        bad = np.flatnonzero(np.abs(np.asarray(values, float) - played) > 0.5)
+        if bad.size:
+            f = int(bad[0])
+            raise ValueError(f"--refine: {path} records DU {du}'s command {values[f]:g} at frame "
+                             f"{f} ({f / fps:.3f} s) where the played commands have "
+                             f"{played[f]:g}: the take played another command file than "
+                             "--played-commands")
 
 
 def _session_take_csv(path: Path) -> bool:
