@@ -13,7 +13,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 PAGES = ("index.md", "format.md", "import.md", "outputs.md", "cli.md", "api.md", "design.md",
-         "architecture.md", "calibration.md", "indices.md", "simulator.md", "discrepancy.md")
+         "design_loop.md", "architecture.md", "calibration.md", "indices.md", "simulator.md",
+         "discrepancy.md")
 
 
 def python_blocks(text: str) -> list[str]:
@@ -183,3 +184,27 @@ def test_the_cli_page_covers_every_command_and_option():
         absent = [o for o in options if f"`{o}" not in sections[name] and f", {o}" not in sections[name]]
         assert not absent, (f"docs/cli.md, mocap {name}: options {absent} undocumented; run "
                             "python docs/make_cli.py > docs/cli.md")
+
+
+def test_the_design_loop_commands_parse_and_name_real_options():
+    """docs/design_loop.md's commands are what 'mocap design' accepts: each shell block's
+    command parses with the command line's own parser, and the options the page names in its
+    text exist."""
+    import shlex
+
+    from mocap.cli import build_parser
+
+    text = (DOCS / "design_loop.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"^```sh\n(.*?)^```", text, flags=re.S | re.M)
+    assert len(blocks) >= 2
+    parser = build_parser()
+    for block in blocks:
+        argv = shlex.split(block.replace("\\\n", " "))
+        assert argv[0] == "mocap", block
+        args = parser.parse_args(argv[1:])
+        assert args.command == "design" and args.method == "model", block
+    sub = next(a for a in build_parser("design")._actions
+               if isinstance(a, argparse._SubParsersAction)).choices["design"]
+    options = {o for a in sub._actions for o in a.option_strings}
+    named = set(re.findall(r"`(--[a-z-]+)", text))
+    assert named and named <= options, named - options

@@ -94,21 +94,46 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
 MODEL_FILE_FORMAT = "facemocap face model 1"  # the first record of a model file
 
 
-def save_model(model: FaceModel, path) -> Path:
+def save_model(model: FaceModel, path, source=None) -> Path:
     """Write an identified model to ``path`` (atomically), for :func:`load_model`.
 
-    The file is a Python pickle of the :class:`FaceModel` after a format line: like an output
-    folder's state files it is trusted; never load one from an untrusted source.
+    The file is a Python pickle of the :class:`FaceModel` after a format line, then the session
+    it was identified on (``source``: a session or a 'mocap run' output; its folder and identity,
+    :func:`mocap.workflows.design_loop.session_identity`; read by :func:`model_file_session`).
+    Like an output folder's state files it is trusted; never load one from an untrusted source.
     """
     import pickle
 
     from mocap.core.atomic import atomic_path
 
+    info = None
+    if source is not None:
+        from mocap.workflows.design_loop import _session_dir, session_identity
+
+        info = {"session": str(_session_dir(source).resolve()),
+                "session_sha256": session_identity(source)}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             pickle.dump(MODEL_FILE_FORMAT, f, protocol=pickle.HIGHEST_PROTOCOL)
             pickle.dump(model, f, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump(info, f, protocol=pickle.HIGHEST_PROTOCOL)
     return Path(path)
+
+
+def model_file_session(path) -> dict | None:
+    """The session a model file's model was identified on ({"session": folder, "session_sha256":
+    identity}), or None when the file does not record one."""
+    import pickle
+
+    load_model(path)
+    try:
+        with open(path, "rb") as f:
+            pickle.load(f)
+            pickle.load(f)
+            info = pickle.load(f)
+    except (EOFError, pickle.UnpicklingError):
+        return None
+    return info if isinstance(info, dict) else None
 
 
 def load_model(path) -> FaceModel:
