@@ -136,6 +136,7 @@ class WandProblem:
     prior_mean: np.ndarray | None = None
     prior_weight: np.ndarray | None = None
     points: "PointSightings | None" = None
+    noise_px: float | None = None  # the pixel noise the prior's weight assumes (covariance scale)
 
     def held(self) -> np.ndarray:
         """(n_cameras * 13,) bool: camera parameters not estimated (gauge and fixed intrinsics)."""
@@ -624,7 +625,7 @@ def _camera_covariance(problem: WandProblem, groups, gauge) -> np.ndarray:
         S[np.diag_indices(n_cam)] += problem.prior_weight.ravel()
     free = ~gauge
     dof = max(n_res - int(free.sum()) - n_blockpar, 1)
-    sigma2 = sq / dof
+    sigma2 = sq / dof if problem.noise_px is None else problem.noise_px**2
     cov = np.zeros((n_cam, n_cam))
     Sf = S[np.ix_(free, free)]
     d = np.sqrt(np.maximum(np.diag(Sf), 1e-300))  # Jacobi scaling: parameters span 1e-6 to 1e5

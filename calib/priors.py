@@ -9,8 +9,9 @@ Brown-Conrady distortion, with how the calibration uses it:
   as its coverage determines it (the calibration's report says by how much). The prior's
   standard deviation of each parameter is what moves the image corner by ``PRIOR_CORNER_PX``
   (1 sd): the principal point by that many px, the focal length by ``PRIOR_CORNER_PX / r`` px
-  (r: the corner's normalised radius), each distortion term by ``PRIOR_CORNER_PX / (f r^n)``
-  (its displacement at the corner is ``f r^n`` times the term).
+  (r: the corner's normalised radius), k1 and k2 by ``PRIOR_CORNER_PX / (f r^3)`` and
+  ``/ (f r^5)``, p1 and p2 by ``PRIOR_CORNER_PX / (2 f r^2)`` (their displacements at the
+  corner per unit term).
 
 Files read (:func:`read_priors`), each giving priors per camera id:
 
@@ -44,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-PRIOR_CORNER_PX = 3.0
+PRIOR_CORNER_PX = 1.0
 PRIOR_MODES = ("fixed", "refine")
 # the bundle adjustment's camera vector: rvec 3, t 3, f, cx, cy, k1, k2, p1, p2
 INTRINSIC_SLICE = slice(6, 13)
@@ -99,8 +100,8 @@ class IntrinsicPrior:
         f = self.focal_px
         r = 0.5 * np.hypot(width, height) / f  # the corner's normalised radius
         px = PRIOR_CORNER_PX
-        return np.array([px / r, px, px, px / (f * r**3), px / (f * r**5), px / (f * r**2),
-                         px / (f * r**2)])
+        return np.array([px / r, px, px, px / (f * r**3), px / (f * r**5), px / (2 * f * r**2),
+                         px / (2 * f * r**2)])
 
 
 def prior_from_camera_info(info) -> IntrinsicPrior | None:

@@ -175,7 +175,8 @@ def _bundle_stages(obs: WandObservations, rig0: CameraRig, frames: np.ndarray,
             obs_cam=obs.camera[idx], obs_frame=np.searchsorted(frames, obs.frame[idx]),
             obs_uv=obs.uv[idx], offsets=offsets_rel, u0=u0, e1=e1, e2=e2,
             n_cameras=n_cams, fixed_camera=0, fixed_params=fixed_params, k3=k3,
-            prior_mean=mean, prior_weight=weight, points=sightings)
+            prior_mean=mean, prior_weight=weight, points=sightings,
+            noise_px=sigma_all if prior is not None else None)
         result = solve_schur(problem, x0, loss=loss, f_scale=f_scale)
         x0 = np.concatenate([result.cameras.ravel(), result.frames.ravel()]
                             + ([result.points.ravel()] if sightings is not None else []))
@@ -305,14 +306,10 @@ def _coarse_start(obs: WandObservations, cams, wand_length: float, offsets_rel: 
     return rig_from_vectors(result.cameras, rig0), obs, score
 
 
-def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 30):
-    """Raise CalibrationError when the sightings cannot support the asked intrinsics.
-
-    Each camera needs its wand seen together with another camera in ``min_frames`` frames, and
-    at least 6 such frames per intrinsic parameter estimated (a hand-digitised recording of 50
-    frames, of which each camera shares 30 to 45, supports a focal length and k1 k2 with the
-    principal point at the image centre, not a full model).
-    """
+def support_shortfall(obs: WandObservations, intrinsics: IntrinsicsModel, *,
+                      min_frames: int = 30) -> tuple[dict[str, int], int]:
+    """Cameras whose wand is seen together with another camera in fewer frames than the
+    intrinsics need (``check_support``): ({camera id: frames}, frames needed)."""
     frames, n_views = np.unique(obs.frame, return_counts=True)
     multi = frames[n_views >= 2]
     need = max(min_frames, 6 * intrinsics.n_free)
@@ -321,6 +318,18 @@ def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_fra
         n = int(np.isin(obs.frame[obs.camera == c], multi).sum())
         if n < need:
             short[cid] = n
+    return short, need
+
+
+def check_support(obs: WandObservations, intrinsics: IntrinsicsModel, *, min_frames: int = 30):
+    """Raise CalibrationError when the sightings cannot support the asked intrinsics.
+
+    Each camera needs its wand seen together with another camera in ``min_frames`` frames, and
+    at least 6 such frames per intrinsic parameter estimated (a hand-digitised recording of 50
+    frames, of which each camera shares 30 to 45, supports a focal length and k1 k2 with the
+    principal point at the image centre, not a full model).
+    """
+    short, need = support_shortfall(obs, intrinsics, min_frames=min_frames)
     if short:
         raise CalibrationError(
             f"wand seen together with another camera in too few frames for the intrinsics asked "
@@ -361,6 +370,7 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     say = progress or (lambda msg: None)
     timings = {}
     t0 = time.perf_counter()
+    given = obs
     priors = dict(priors or {})
     offsets = np.sort(np.asarray(offsets_mm, float))
     offsets_rel = offsets - 0.5 * (offsets[0] + offsets[-1])
@@ -386,13 +396,16 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
                       dist=np.where(np.r_[intrinsics.fixed_mask()[9:], True], 0.0, c.dist))
 
     cams = [start(c) for c in cams]
+    not_determined: dict[str, list[str]] = {}
     if adaptive and not has_prior.all():  # start from the richest model the frame count supports
         for model in LADDER:
-            try:
-                check_support(obs, model)
-            except CalibrationError:
-                if model == LADDER[-1]:
-                    raise
+            short, need = support_shortfall(obs, model)
+            short = {k: v for k, v in short.items() if k not in priors}
+            if short and model != LADDER[-1]:
+                for cid, n in short.items():
+                    not_determined.setdefault(cid, []).append(
+                        f"{model.principal_point} principal point with {model.distortion} "
+                        f"distortion: {n} frames shared with another camera, {need} needed")
                 continue
             intrinsics = model
             break
@@ -461,7 +474,6 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         return {k: v for k, v in out.items() if k not in priors}
 
     loose = undetermined(intrinsics)
-    not_determined: dict[str, list[str]] = {}
     while loose and adaptive and intrinsics != LADDER[-1]:
         simpler = LADDER[LADDER.index(intrinsics) + 1] if intrinsics in LADDER else LADDER[-1]
         say(f"intrinsics {intrinsics.principal_point} principal point, {intrinsics.distortion} "
@@ -507,7 +519,7 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
                              "distortion": intrinsics.distortion}
     quality["wand_markers"] = int(offsets.size)
     quality.update(rig_report(rig, obs, used, intrinsics, priors, result, not_determined,
-                              points, extra))
+                              points, extra, given=given, reach_px=reach))
     timings["total"] = time.perf_counter() - t0
     quality["seconds"] = round(timings["total"], 3)
     return CalibrationResult(rig=rig, quality=quality, wand=obs, used=used,
