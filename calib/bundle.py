@@ -591,11 +591,11 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 
 
 def _schur_product(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """sum_f Y[f] W[f]^T over frames, as one matrix product: Y, W (F, C, 13, 5) ->
+    """sum_f Y[f] W[f]^T over frames (or points), as one matrix product: Y, W (F, C, 13, nb) ->
     (C * 13, C * 13)."""
-    F, C = Y.shape[:2]
-    Yr = Y.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
-    Wr = W.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
+    F, C, _, nb = Y.shape
+    Yr = Y.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * nb)
+    Wr = W.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * nb)
     return Yr @ Wr.T
 
 

@@ -15,9 +15,10 @@ Keys added to the quality report (all per camera id):
 - ``coverage``: the share of the image's 8 x 8 cells holding a wand sighting (``wand``), a
   static point (``points``), and either (``both``);
 - ``sightings_dropped``: per camera the count of sightings the outlier test removed, and
-  ``dropped``: each one (kind wand or points, frame, residual and the threshold it exceeded,
-  px: 6 sd of the residual predicted at that image point, from the camera's noise and the
-  model's uncertainty there, at least 0.6 px);
+  ``dropped``: per camera, columns over each one (``kind`` wand or points, ``frame``,
+  ``residual_px`` and the ``threshold_px`` it exceeded: 6 sd of the residual predicted at
+  that image point, from the camera's noise and the model's uncertainty there, at least
+  0.6 px; ``stage`` of the adjustment);
 - ``sightings``: per camera the wand sightings found, used, dropped (above), seen in a frame
   no other camera saw (``single_camera``: no correspondence, unusable), and ``other`` (ends not
   ordered consistently with the other cameras, or frames left out by the subsampling);
@@ -94,7 +95,7 @@ def rig_report(rig, obs, used, intrinsics, priors, result, not_determined, point
            "prior_refinement": refinement_report(rig, priors, result.camera_covariance),
            "coverage": coverage,
            "sightings_dropped": dropped_n,
-           "dropped": extra["dropped"],
+           "dropped": _columns(extra["dropped"], [c.id for c in rig]),
            "sightings_not_in_adjustment": int(np.sum(~in_frames)),
            "sightings": accounted}
     if points is not None:
@@ -107,4 +108,15 @@ def rig_report(rig, obs, used, intrinsics, priors, result, not_determined, point
             rms[c.id] = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
         out["points"] = {"points": int(extra["point_ids"].size), "sightings": int(pu.sum()),
                          "skipped": dict(points.skipped), "reprojection_rms_px": rms}
+    return out
+
+
+def _columns(dropped: list[dict], ids) -> dict:
+    """The dropped sightings per camera as columns (a TOML-friendly table per camera)."""
+    out = {}
+    for cid in ids:
+        rows = [d for d in dropped if d["camera"] == cid]
+        if rows:
+            out[cid] = {k: [d[k] for d in rows]
+                        for k in ("kind", "frame", "residual_px", "threshold_px", "stage")}
     return out

@@ -25,8 +25,8 @@ class StaticPoints:
     camera : (m,) camera index of each sighting.
     point : (m,) the point's frame number in its take (its identity).
     uv : (m, 2) px, raw (distorted) image positions.
-    skipped : why sightings were left out: {"several blobs": n (a camera with 2 or more blobs in
-        a point's frame: which is the point is unknown), "one camera": n (a point seen by a
+    skipped : why sightings were left out: {"several_blobs": n (a camera with 2 or more blobs in
+        a point's frame: which is the point is unknown), "one_camera": n (a point seen by a
         single camera adds no correspondence)}.
     """
 
@@ -61,7 +61,7 @@ def static_points(blobs: pd.DataFrame, camera_ids, *, frame_offset: int = 0) -> 
     b = b[views >= 2]
     return StaticPoints(ids, camera_index(b["camera"].to_numpy(), ids),
                         b["frame"].to_numpy(np.int64) + frame_offset,
-                        b[["x", "y"]].to_numpy(float), {"several blobs": several, "one camera": one})
+                        b[["x", "y"]].to_numpy(float), {"several_blobs": several, "one_camera": one})
 
 
 def combine(parts: list[StaticPoints]) -> StaticPoints | None:
