@@ -255,3 +255,28 @@ def test_too_few_frames_for_distortion_is_reported(thin):
     for cid, v in q["intrinsics_per_camera"].items():
         assert v["not_determined"] and all("frames" in w or "distortion" in w
                                            for w in v["not_determined"])
+
+
+def test_static_points_add_correspondences(thin, wand_only, refined):
+    """40 static points digitised with the same noise, spread wider than the wand went: they
+    join the adjustment (reprojecting at the noise), cover more of each image, and bring the
+    calibration closer to the truth, with and without priors."""
+    from mocap.calib.static_points import static_points
+
+    truth, P, obs = thin
+    rng = np.random.default_rng(3)
+    Q = (P.reshape(-1, 3).mean(axis=0) + rng.uniform(-1, 1, (40, 3)) * [350, 280, 120])[:, None]
+    blobs, _ = observe(truth, Q, rng, noise=CaptureNoise(noise_px=NOISE_PX, dropout=0.0,
+                                                         ghost_rate=0.0, merge_px=0.0))
+    pts = static_points(blobs, truth.ids)
+    seen = np.sum([c.in_image(c.project(Q[:, 0]), margin_px=1.0) for c in truth], axis=0)
+    assert pts.n_points == int(np.sum(seen >= 2)) and pts.skipped["one_camera"] == int(
+        np.sum(seen == 1))
+    for before, priors in ((wand_only, None), (refined, priors_of(truth, "refine"))):
+        after = run(obs, priors, points=pts)
+        q = after.quality
+        assert q["points"]["points"] == pts.n_points and q["points"]["sightings"] == len(pts)
+        assert max(q["points"]["reprojection_rms_px"].values()) < 1.2 * NOISE_PX
+        assert all(v["both"] >= v["wand"] for v in q["coverage"].values())
+        assert any(v["both"] > v["wand"] for v in q["coverage"].values())
+        assert image_space_rms(after.rig, truth) < image_space_rms(before.rig, truth)
