@@ -85,6 +85,7 @@ class CalibrationResult:
 
 OUTLIER_SD = 6.0  # a sighting is an outlier beyond this many sd of its predicted residual
 OUTLIER_FLOOR_PX = 0.6  # ... and beyond this many px (sub-pixel noise is never an outlier)
+PREDICTIVE_CAP = 3.0  # the model's predictive sd counts up to this many x the camera's noise
 
 
 def select_frames(obs: WandObservations, max_frames: int = 3600, per_camera: int = 120) -> np.ndarray:
@@ -194,6 +195,9 @@ def _bundle_stages(obs: WandObservations, rig0: CameraRig, frames: np.ndarray,
             [result.point_residuals.ravel()] if result.point_residuals is not None else [])) ** 2))
         scale = sigma_all / max(rms, 1e-12)
         pred = scale * predictive_sd(Jcam, problem.obs_cam, result.camera_covariance)
+        # the cameras' marginal covariance ignores what the frame's other sightings pin down (an
+        # upper bound, loose on long lenses whose focal length trades with distance): capped
+        pred = np.minimum(pred, PREDICTIVE_CAP * sigma[problem.obs_cam, None])
         threshold = np.maximum(OUTLIER_SD * np.sqrt(sigma[problem.obs_cam, None] ** 2 + pred**2),
                                OUTLIER_FLOOR_PX)
         ratio = norms / threshold
@@ -203,6 +207,7 @@ def _bundle_stages(obs: WandObservations, rig0: CameraRig, frames: np.ndarray,
             _, Jpc, _ = problem.point_blocks(x0)
             ppred = scale * predictive_sd(Jpc[:, None], sightings.camera,
                                           result.camera_covariance)[:, 0]
+            ppred = np.minimum(ppred, PREDICTIVE_CAP * sigma[sightings.camera])
             pth = np.maximum(OUTLIER_SD * np.sqrt(sigma[sightings.camera] ** 2 + ppred**2),
                              OUTLIER_FLOOR_PX)
             pn = np.linalg.norm(result.point_residuals, axis=-1)
