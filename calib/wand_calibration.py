@@ -414,8 +414,15 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
                 continue
             intrinsics = model
             break
-    if not has_prior.all():
-        check_support(obs, intrinsics)
+    short, need = support_shortfall(obs, intrinsics)
+    short = {k: v for k, v in short.items() if k not in priors}
+    if short:
+        raise CalibrationError(
+            f"wand seen together with another camera in too few frames for the intrinsics asked "
+            f"(principal point {intrinsics.principal_point}, distortion {intrinsics.distortion}: "
+            f"{intrinsics.n_free} per camera, {need} frames needed): {short}. Record more wand "
+            "frames, estimate fewer intrinsics (--principal-point fixed, --distortion k1 or none) "
+            "or give those cameras prior intrinsics")
     fixed_params = masks(intrinsics)
     # coarse first: poses and focal lengths only (principal point at its start, distortion at
     # the prior's or none), robustly; a full model from a rough start can wander off
