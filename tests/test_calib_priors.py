@@ -280,3 +280,34 @@ def test_static_points_add_correspondences(thin, wand_only, refined):
         assert all(v["both"] >= v["wand"] for v in q["coverage"].values())
         assert any(v["both"] > v["wand"] for v in q["coverage"].values())
         assert image_space_rms(after.rig, truth) < image_space_rms(before.rig, truth)
+
+
+def test_schur_solver_with_points_and_prior_agrees_with_least_squares(thin, refined):
+    """The hand-written Schur-complement solver, with static points eliminated and a prior on
+    the intrinsics, reaches the optimum scipy's least_squares finds on the same residuals."""
+    from mocap.calib.bundle import solve, solve_schur
+    from mocap.calib.priors import prior_arrays
+    from mocap.calib.static_points import static_points
+    from mocap.calib.wand_calibration import _bundle_stages, select_frames
+
+    truth, P, _ = thin
+    rng = np.random.default_rng(4)
+    Q = (P.reshape(-1, 3).mean(axis=0) + rng.uniform(-1, 1, (30, 3)) * [300, 250, 100])[:, None]
+    blobs, _ = observe(truth, Q, rng, noise=CaptureNoise(noise_px=NOISE_PX, dropout=0.0,
+                                                         ghost_rate=0.0, merge_px=0.0))
+    pts = static_points(blobs, truth.ids)
+    held, mean, sd = prior_arrays(list(truth), priors_of(truth, "refine"))
+    obs = refined.wand
+    offsets_rel = OFFSETS - OFFSETS.mean()
+    result, problem, _, _, _ = _bundle_stages(
+        obs, refined.rig, select_frames(obs), offsets_rel, held, lambda m: None,
+        stages=(("linear", 1.0),), prior=(mean, sd), points=pts)
+    x = np.concatenate([result.cameras.ravel(), result.frames.ravel(), result.points.ravel()])
+    x0 = x.copy()
+    x0[6:13 * len(truth)] += rng.normal(0, 1e-4, 13 * len(truth) - 6) * np.abs(x[6:13 * len(truth)])
+    a = solve_schur(problem, x0)
+    b = solve(problem, x0, max_nfev=400)
+    assert a.cost <= b.cost * (1 + 1e-6) and b.cost <= a.cost * (1 + 1e-3)
+    # (least_squares' inexact LSMR steps stop a little short: within 0.02 px and 0.01 mm)
+    np.testing.assert_allclose(a.cameras[:, 6:9], b.cameras[:, 6:9], atol=0.02)
+    np.testing.assert_allclose(a.points, b.points, atol=0.01)
