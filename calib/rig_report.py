@@ -47,9 +47,11 @@ def image_share_within(camera, radius_px: float) -> float:
     return float(np.mean(d <= radius_px))
 
 
-def rig_report(rig, obs, used, intrinsics, priors, result, not_determined, points, extra, *,
+def rig_report(rig, obs, used, models, priors, result, not_determined, points, extra, *,
                given=None, reach_px=None) -> dict:
-    """The per-camera report (module docstring); ``obs`` the ordered wand sightings, ``used``
+    """The per-camera report (module docstring); ``models`` each camera's
+    :class:`mocap.calib.bundle.IntrinsicsModel` (cameras without priors); ``obs`` the ordered
+    wand sightings, ``used``
     the final adjustment's, ``result`` its :class:`mocap.calib.bundle.BundleResult`, ``given``
     the wand sightings found (before their ends were ordered), ``reach_px`` (n_cameras,) how far
     from each principal point the sightings reach (99th percentile, px)."""
@@ -67,6 +69,7 @@ def rig_report(rig, obs, used, intrinsics, priors, result, not_determined, point
                              "distortion": "prior" if p.mode == "fixed" else "prior, refined",
                              "not_determined": []}
         else:
+            intrinsics = models[i]
             per_cam[c.id] = {"source": "wand",
                              "principal_point": ("estimated" if intrinsics.principal_point == "free"
                                                  else "fixed at the image centre"),

@@ -387,8 +387,11 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
     adaptive = intrinsics is None
     intrinsics = LADDER[0] if intrinsics is None else intrinsics
 
-    def masks(model):  # cameras with priors: all intrinsics estimated (refine) or held (fixed)
-        m = np.tile(model.fixed_mask(), (len(cams), 1))
+    model_of = [intrinsics] * len(cams)  # per camera calibrated from the wand alone
+    wand_only = [i for i, c in enumerate(cams) if c.id not in priors]
+
+    def masks():  # cameras with priors: all intrinsics estimated (refine) or held (fixed)
+        m = np.stack([model_of[i].fixed_mask() for i in range(len(cams))])
         m[has_prior] = p_held[has_prior]
         return m
 
@@ -402,28 +405,36 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
 
     cams = [start(c) for c in cams]
     not_determined: dict[str, list[str]] = {}
-    if adaptive and not has_prior.all():  # start from the richest model the frame count supports
-        for model in LADDER:
-            short, need = support_shortfall(obs, model)
-            short = {k: v for k, v in short.items() if k not in priors}
-            if short and model != LADDER[-1]:
-                for cid, n in short.items():
+    if adaptive:  # per camera, start from the richest model its frame count supports
+        for i in wand_only:
+            cid = cams[i].id
+            for model in LADDER:
+                short, need = support_shortfall(obs, model)
+                if cid in short and model != LADDER[-1]:
                     not_determined.setdefault(cid, []).append(
                         f"{model.principal_point} principal point with {model.distortion} "
-                        f"distortion: {n} frames shared with another camera, {need} needed")
-                continue
-            intrinsics = model
-            break
-    short, need = support_shortfall(obs, intrinsics)
-    short = {k: v for k, v in short.items() if k not in priors}
+                        f"distortion: {short[cid]} frames shared with another camera, {need} "
+                        "needed")
+                    continue
+                model_of[i] = model
+                break
+        cams = [c if i not in wand_only else _reset_held(c, model_of[i])
+                for i, c in enumerate(cams)]
+    short = {}
+    for i in wand_only:
+        s_i, need = support_shortfall(obs, model_of[i])
+        if cams[i].id in s_i:
+            short[cams[i].id] = (s_i[cams[i].id], need, model_of[i])
     if short:
+        _, (_, need, m0) = next(iter(short.items()))
         raise CalibrationError(
             f"wand seen together with another camera in too few frames for the intrinsics asked "
-            f"(principal point {intrinsics.principal_point}, distortion {intrinsics.distortion}: "
-            f"{intrinsics.n_free} per camera, {need} frames needed): {short}. Record more wand "
+            f"(principal point {m0.principal_point}, distortion {m0.distortion}: "
+            f"{m0.n_free} per camera, {need} frames needed): "
+            f"{ {k: v[0] for k, v in short.items()} }. Record more wand "
             "frames, estimate fewer intrinsics (--principal-point fixed, --distortion k1 or none) "
             "or give those cameras prior intrinsics")
-    fixed_params = masks(intrinsics)
+    fixed_params = masks()
     # coarse first: poses and focal lengths only (principal point at its start, distortion at
     # the prior's or none), robustly; a full model from a rough start can wander off
     coarse = np.tile(IntrinsicsModel("fixed", "none").fixed_mask(), (len(cams), 1)) | fixed_params
@@ -481,31 +492,44 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
                                     99) if np.any(obs.camera == i) else 0.0
                       for i, c in enumerate(rig)])
 
-    def undetermined(model):  # cameras with priors are determined by their prior
-        out = undetermined_intrinsics(rig, result.camera_covariance, model, reach)
-        return {k: v for k, v in out.items() if k not in priors}
+    def undetermined():  # per camera, against its own model; cameras with priors are determined
+        out = {}
+        for model in {model_of[i] for i in wand_only}:
+            u = undetermined_intrinsics(rig, result.camera_covariance, model, reach)
+            out.update({cid: v for cid, v in u.items() if cid not in priors
+                        and model_of[rig.index(cid)] == model})
+        return out
 
-    loose = undetermined(intrinsics)
-    while loose and adaptive and intrinsics != LADDER[-1]:
-        simpler = LADDER[LADDER.index(intrinsics) + 1] if intrinsics in LADDER else LADDER[-1]
-        say(f"intrinsics {intrinsics.principal_point} principal point, {intrinsics.distortion} "
-            f"distortion not determined by these frames ({loose}); trying "
-            f"{simpler.principal_point}, {simpler.distortion}")
+    loose = undetermined()
+    while loose and adaptive:
+        stepped = []
         for cid, why in loose.items():
+            i = rig.index(cid)
+            m = model_of[i]
+            if m == LADDER[-1]:
+                continue
+            simpler = LADDER[LADDER.index(m) + 1] if m in LADDER else LADDER[-1]
             not_determined.setdefault(cid, []).extend(
-                f"{intrinsics.principal_point} principal point with {intrinsics.distortion} "
-                f"distortion: {w}" for w in why)
-        intrinsics = simpler
-        fixed_params = masks(intrinsics)
-        rig = CameraRig(tuple(c if c.id in priors else _reset_held(c, intrinsics) for c in rig))
+                f"{m.principal_point} principal point with {m.distortion} distortion: {w}"
+                for w in why)
+            model_of[i] = simpler
+            stepped.append(f"{cid} -> {simpler.principal_point} principal point, "
+                           f"{simpler.distortion} distortion")
+        if not stepped:
+            break
+        say(f"intrinsics not determined by these frames ({loose}); trying {'; '.join(stepped)}")
+        fixed_params = masks()
+        rig = CameraRig(tuple(c if c.id in priors else _reset_held(c, model_of[i])
+                              for i, c in enumerate(rig)))
         result, problem, used, frames, extra = _bundle_stages(obs, rig, frames, offsets_rel,
                                                               fixed_params, say, **kw)
         rig = rig_from_vectors(result.cameras, rig)
-        loose = undetermined(intrinsics)
+        loose = undetermined()
     if loose:
+        m0 = model_of[rig.index(next(iter(loose)))]
         raise CalibrationError(
             f"the wand frames do not determine the intrinsics asked (principal point "
-            f"{intrinsics.principal_point}, distortion {intrinsics.distortion}): {loose}. Estimate "
+            f"{m0.principal_point}, distortion {m0.distortion}): {loose}. Estimate "
             "fewer (--principal-point fixed, --distortion k1 or none), give prior intrinsics "
             "(--intrinsics FILE, or principal_px and distortion in session.toml), or record more "
             "wand frames reaching the image corners")
@@ -527,10 +551,14 @@ def calibrate(obs: WandObservations, cameras_init, offsets_mm, *, ground_blobs=N
         say(f"world frame: {world}")
     quality = quality_report(rig, obs, used, result.residuals, wand_length, ground)
     quality["world_frame"] = world
-    quality["intrinsics"] = {"principal_point": intrinsics.principal_point,
-                             "distortion": intrinsics.distortion}
+    # the simplest model of the cameras calibrated from the wand alone (each camera's own is in
+    # intrinsics_per_camera)
+    simplest = max((model_of[i] for i in wand_only),
+                   key=lambda m: LADDER.index(m) if m in LADDER else -1, default=intrinsics)
+    quality["intrinsics"] = {"principal_point": simplest.principal_point,
+                             "distortion": simplest.distortion}
     quality["wand_markers"] = int(offsets.size)
-    quality.update(rig_report(rig, obs, used, intrinsics, priors, result, not_determined,
+    quality.update(rig_report(rig, obs, used, model_of, priors, result, not_determined,
                               points, extra, given=given, reach_px=reach))
     timings["total"] = time.perf_counter() - t0
     quality["seconds"] = round(timings["total"], 3)

@@ -11,8 +11,8 @@ Calibrate the camera rig from the session's wand take (a waved wand of 2 or more
 markers, the manifest's [wand]; with 2 the ends are told apart by geometry) and ground take
 (the square that sets the world frame, the manifest's [ground]; without one the world frame is
 the first camera's, scaled by the wand), with no prior knowledge of where the cameras are.
-Cameras without focal_px get their focal length searched. Intrinsics: by default the richest
-model the frames determine (principal point free and k1 k2 p1 p2, else principal point at the
+Cameras without focal_px get their focal length searched. Intrinsics: by default, per camera,
+the richest model its frames determine (principal point free and k1 k2 p1 p2, else principal point at the
 image centre with k1 k2, k1, or none); --principal-point / --distortion ask for one model (an
 error when the frames cannot determine it). Prior intrinsics (a lens profile or a board
 calibration) come from the manifest (principal_px, distortion, intrinsics) or from
