@@ -56,9 +56,9 @@ are not; the far, long-lens cameras (focal about 27,000 px) make each camera's d
 worst-determined quantity (centre shift / distance). The agreement with the tool compares every
 sighting the final bundle adjustment kept (chosen and ordered by the calibration) with the tool's
 Filtered_Small / Filtered_Large rows (same blobs, and the same end in every camera of a frame).
-These uncalibrated long lenses (focal about 27,000 px) support only a focal length from the
-wand (principal point at the image centre, no distortion), so the priors here are that model
-from another stretch of the same recording: they show what priors change on a real rig (and
+These uncalibrated long lenses (focal about 27,000 px) support little more than a focal
+length from the wand (principal point at the image centre; per camera no distortion up to
+k1 k2), so the priors here are that model from another stretch of the same recording: they show what priors change on a real rig (and
 that they change nothing for the worse), not the gain on a strongly distorted lens."""
 
 
