@@ -532,7 +532,7 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
                 lam *= 10.0
                 continue
             steps = [dc]
-            for (V, gb, W, nb), Vinv in zip(parts, elim):
+            for (_, gb, W, _), Vinv in zip(parts, elim):
                 db = np.einsum("fkl,fl->fk", Vinv,
                                -gb - np.einsum("fcik,ci->fk", W, dc.reshape(C, N_CAM)))
                 steps.append(db.ravel())

@@ -163,7 +163,7 @@ def test_import_and_calibrate_with_profile_and_background_points(tmp_path, capsy
     (one row, 40 points), a lens profile per camera. Imported and calibrated by the commands:
     the priors are used as given, the static points join the adjustment and cover more of the
     image, and every point reprojects near its noise-free position."""
-    from test_calib_priors import OFFSETS, thin_rig, wand_recording
+    from test_calib_priors import thin_rig, wand_recording
 
     from mocap.calib.calibration_file import read_calibration
     from mocap.cli import main
@@ -200,7 +200,7 @@ def test_import_and_calibrate_with_profile_and_background_points(tmp_path, capsy
         np.testing.assert_allclose(c.K, t.K, atol=1e-9)
     assert q["points"]["points"] >= 20
     assert max(q["points"]["reprojection_rms_px"].values()) < 1e-3  # noise-free digitisation
-    for cid, cov in q["coverage"].items():
+    for _cid, cov in q["coverage"].items():
         assert cov["both"] > cov["wand"]
     assert sum(q["sightings_dropped"].values()) == 0
     # the same profile read by --intrinsics overrides a manifest without priors

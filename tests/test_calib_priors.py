@@ -180,9 +180,9 @@ def test_refined_priors_no_worse(thin, refined, reference, wand_only):
     assert ours <= 1.5 * image_space_rms(reference, truth)
     rep = refined.quality["prior_refinement"]
     assert set(rep) == set(truth.ids)
-    for cid, v in rep.items():
+    for _cid, v in rep.items():
         assert v["mode"] == "refine"
-        for name, p in v["parameters"].items():
+        for _name, p in v["parameters"].items():
             assert 0.0 <= p["wand_share"] <= 1.0
             assert p["posterior_sd"] <= p["prior_sd"] * 1.0001
             assert abs(p["change"]) <= 4 * p["prior_sd"]
@@ -234,7 +234,7 @@ def test_without_priors_the_report_says_where_distortion_was_determined(thin, wa
     _, blobs = wand_recording(truth, seed=8, spread=0.35)
     central = run(find_wand(blobs, truth.ids, OFFSETS)).quality
     for q in (wide, central):
-        for cid, v in q["intrinsics_per_camera"].items():
+        for v in q["intrinsics_per_camera"].values():
             assert v["source"] == "wand"
             if q["intrinsics"]["distortion"] != "none":
                 assert 0.0 < v["distortion_determined_image_share"] < 1.0
@@ -252,7 +252,7 @@ def test_too_few_frames_for_distortion_is_reported(thin):
     keep = np.isin(obs.frame, np.unique(obs.frame)[:50])
     q = run(obs.select(keep)).quality
     assert q["intrinsics"]["distortion"] != "k1k2p1p2"
-    for cid, v in q["intrinsics_per_camera"].items():
+    for _cid, v in q["intrinsics_per_camera"].items():
         assert v["not_determined"] and all("frames" in w or "distortion" in w
                                            for w in v["not_determined"])
 
