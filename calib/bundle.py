@@ -101,7 +101,7 @@ def camera_from_vector(v: np.ndarray, like: Camera) -> Camera:
     f, cx, cy, k1, k2, p1, p2 = v[6:13]
     return Camera(id=like.id, width=like.width, height=like.height,
                   K=[[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]],
-                  dist=[k1, k2, p1, p2, 0.0], R=rotation_from_rodrigues(v[:3]), t=v[3:6])
+                  dist=[k1, k2, p1, p2, like.dist[4]], R=rotation_from_rodrigues(v[:3]), t=v[3:6])
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,11 @@ class WandProblem:
     fixed_camera : the camera whose pose is held (gauge).
     fixed_params : (n_cameras, 13) bool, camera parameters held at their start values (the
         intrinsics an :class:`IntrinsicsModel` does not estimate); None: all free.
+    k3 : (n_cameras,) each camera's third radial term, held (a prior's; 0 when None).
+    prior_mean, prior_weight : (n_cameras, 13) a Gaussian prior on the camera parameters: the
+        cost gains ``0.5 * sum(prior_weight * (x - prior_mean)^2)`` (weight in px^2 per unit^2:
+        the pixel noise's variance over the prior's; 0 where there is no prior); None: none.
+    points : static points with known correspondence (:class:`PointSightings`), or None.
     """
 
     obs_cam: np.ndarray
@@ -127,6 +132,11 @@ class WandProblem:
     n_cameras: int
     fixed_camera: int
     fixed_params: np.ndarray | None = None
+    k3: np.ndarray | None = None
+    prior_mean: np.ndarray | None = None
+    prior_weight: np.ndarray | None = None
+    points: "PointSightings | None" = None
+    noise_px: float | None = None  # the pixel noise the prior's weight assumes (covariance scale)
 
     def held(self) -> np.ndarray:
         """(n_cameras * 13,) bool: camera parameters not estimated (gauge and fixed intrinsics)."""
@@ -141,18 +151,35 @@ class WandProblem:
         return self.u0.shape[0]
 
     @property
+    def n_points(self) -> int:
+        return 0 if self.points is None else self.points.n_points
+
+    def prior_cost(self, cams: np.ndarray) -> float:
+        if self.prior_weight is None:
+            return 0.0
+        return 0.5 * float(np.sum(self.prior_weight * (cams - self.prior_mean) ** 2))
+
+    @property
     def n_w(self) -> int:
         return self.offsets.size
 
     def free_mask(self) -> np.ndarray:
-        mask = np.ones(self.n_cameras * N_CAM + self.n_frames * N_FRAME, bool)
+        mask = np.ones(self.n_cameras * N_CAM + self.n_frames * N_FRAME + 3 * self.n_points, bool)
         mask[: self.n_cameras * N_CAM] = ~self.held()
         return mask
 
     def split(self, x_full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cams = x_full[: self.n_cameras * N_CAM].reshape(self.n_cameras, N_CAM)
-        frames = x_full[self.n_cameras * N_CAM:].reshape(self.n_frames, N_FRAME)
+        """Cameras (n_cameras, 13) and wand frames (n_frames, 5) of a full parameter vector
+        (static points, when any, follow the frames: :meth:`split_points`)."""
+        nc = self.n_cameras * N_CAM
+        cams = x_full[:nc].reshape(self.n_cameras, N_CAM)
+        frames = x_full[nc:nc + self.n_frames * N_FRAME].reshape(self.n_frames, N_FRAME)
         return cams, frames
+
+    def split_points(self, x_full: np.ndarray) -> np.ndarray:
+        """(n_points, 3) static points, mm, of a full parameter vector."""
+        start = self.n_cameras * N_CAM + self.n_frames * N_FRAME
+        return x_full[start:start + 3 * self.n_points].reshape(self.n_points, 3)
 
     def wand_points(self, frames: np.ndarray) -> np.ndarray:
         """(n_frames, n_w, 3) marker positions from frame parameters."""
@@ -161,57 +188,27 @@ class WandProblem:
         return frames[:, None, :3] + self.offsets[None, :, None] * u[:, None, :]
 
     # -- residuals and Jacobian ---------------------------------------------------------------
-    def _project(self, cams: np.ndarray, frames: np.ndarray, jac: bool):
+    def _project_at(self, cams: np.ndarray, c: np.ndarray, P: np.ndarray, jac: bool):
+        """Project points P (n, k, 3) mm by cameras c (n,): pixels (n, k, 2) and, with ``jac``,
+        d uv / d camera (n, k, 2, 13) and d uv / d P (n, k, 2, 3)."""
         R = rotation_from_rodrigues(cams[:, :3])  # (C, 3, 3)
-        P = self.wand_points(frames)[self.obs_frame]  # (n_obs, n_w, 3)
-        c = self.obs_cam
         Rc = R[c]
         Xc = np.einsum("oij,okj->oki", Rc, P) + cams[c, None, 3:6]
         z = Xc[..., 2]
         xn = Xc[..., 0] / z
         yn = Xc[..., 1] / z
         f, cx, cy, k1, k2, p1, p2 = (cams[c, 6 + i][:, None] for i in range(7))
+        k3 = (np.zeros(c.size) if self.k3 is None else self.k3[c])[:, None]
         r2 = xn * xn + yn * yn
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2
+        radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
         xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
         yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
         uv = np.stack([f * xd + cx, f * yd + cy], axis=-1)
         if not jac:
-            return uv, None
-        return uv, (R, Rc, P, Xc, z, xn, yn, r2, radial, f, k1, k2, p1, p2, xd, yd)
-
-    def residuals(self, x_full: np.ndarray) -> np.ndarray:
-        cams, frames = self.split(x_full)
-        uv, _ = self._project(cams, frames, jac=False)
-        return (uv - self.obs_uv).ravel()
-
-    def jacobian(self, x_full: np.ndarray) -> sp.csr_matrix:
-        """Analytic sparse Jacobian (n_obs * n_w * 2, n_params_full)."""
-        _, Jcam, Jfr = self.blocks(x_full)
-        n_obs, n_w = Jcam.shape[:2]
-        rows = np.arange(n_obs * n_w * 2).reshape(n_obs, n_w, 2)
-        cam_cols = self.obs_cam[:, None] * N_CAM + np.arange(N_CAM)[None]
-        frame_cols = (self.n_cameras * N_CAM + self.obs_frame[:, None] * N_FRAME
-                      + np.arange(N_FRAME)[None])
-        r_idx = np.concatenate([
-            np.broadcast_to(rows[..., None], (n_obs, n_w, 2, N_CAM)).ravel(),
-            np.broadcast_to(rows[..., None], (n_obs, n_w, 2, N_FRAME)).ravel()])
-        c_idx = np.concatenate([
-            np.broadcast_to(cam_cols[:, None, None, :], (n_obs, n_w, 2, N_CAM)).ravel(),
-            np.broadcast_to(frame_cols[:, None, None, :], (n_obs, n_w, 2, N_FRAME)).ravel()])
-        vals = np.concatenate([Jcam.ravel(), Jfr.ravel()])
-        n_par = self.n_cameras * N_CAM + self.n_frames * N_FRAME
-        return sp.csr_matrix((vals, (r_idx, c_idx)), shape=(n_obs * n_w * 2, n_par))
-
-    def blocks(self, x_full: np.ndarray):
-        """Residuals (n_obs, n_w, 2) px and the Jacobian's blocks: with respect to the sighting's
-        camera (n_obs, n_w, 2, 13) and to its frame (n_obs, n_w, 2, 5)."""
-        cams, frames = self.split(x_full)
-        uv, parts = self._project(cams, frames, jac=True)
-        R, Rc, P, Xc, z, xn, yn, r2, radial, f, k1, k2, p1, p2, xd, yd = parts
+            return uv, None, None
         n_obs, n_w = xn.shape
         # d(xd, yd) / d(xn, yn)
-        dr = k1 + 2.0 * k2 * r2  # d radial / d r2
+        dr = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r2 * r2  # d radial / d r2
         dxd_dxn = radial + 2.0 * xn * xn * dr + 2.0 * p1 * yn + 6.0 * p2 * xn
         dxd_dyn = 2.0 * xn * yn * dr + 2.0 * p1 * xn + 2.0 * p2 * yn
         dyd_dxn = 2.0 * xn * yn * dr + 2.0 * p1 * xn + 2.0 * p2 * yn
@@ -228,7 +225,7 @@ class WandProblem:
         # camera block: rotation (small-angle perturbation on the left, mapped to rvec via the
         # right Jacobian would be exact; we use d Xc / d omega = -[Xc - t]_x with the rvec
         # updated additively, which is exact at omega -> 0 and a good quasi-Newton step)
-        Y = Xc - cams[self.obs_cam, None, 3:6]  # R P
+        Y = Xc - cams[c, None, 3:6]  # R P
         cross = np.zeros((n_obs, n_w, 3, 3))
         cross[..., 0, 1] = Y[..., 2]
         cross[..., 0, 2] = -Y[..., 1]
@@ -236,7 +233,7 @@ class WandProblem:
         cross[..., 1, 2] = Y[..., 0]
         cross[..., 2, 0] = Y[..., 1]
         cross[..., 2, 1] = -Y[..., 0]
-        Jr = np.einsum("owij,owjk->owik", A, cross @ _rvec_jacobian(cams[:, :3])[self.obs_cam][:, None])
+        Jr = np.einsum("owij,owjk->owik", A, cross @ _rvec_jacobian(cams[:, :3])[c][:, None])
         Jt = A
         Jf = np.stack([xd, yd], axis=-1)[..., None]
         Jc = np.zeros((n_obs, n_w, 2, 2))
@@ -252,7 +249,74 @@ class WandProblem:
         Jk[..., 0, 3] = f * (r2 + 2.0 * xn * xn)
         Jk[..., 1, 3] = f * 2.0 * xn * yn
         Jcam = np.concatenate([Jr, Jt, Jf, Jc, Jk], axis=-1)  # (o, w, 2, 13)
+        JP = np.einsum("owij,ojk->owik", A, Rc)  # (o, w, 2, 3)
+        return uv, Jcam, JP
+
+    def _project(self, cams: np.ndarray, frames: np.ndarray, jac: bool):
+        P = self.wand_points(frames)[self.obs_frame]  # (n_obs, n_w, 3)
+        return self._project_at(cams, self.obs_cam, P, jac)
+
+    def residuals(self, x_full: np.ndarray) -> np.ndarray:
+        """Every reprojection residual, px: the wand's (n_obs * n_w * 2) then the static
+        points' (n_point_sightings * 2)."""
+        cams, frames = self.split(x_full)
+        uv, _, _ = self._project(cams, frames, jac=False)
+        r = (uv - self.obs_uv).ravel()
+        if self.points is None:
+            return r
+        rp, _, _ = self.point_blocks(x_full, jac=False)
+        return np.concatenate([r, rp.ravel()])
+
+    def jacobian(self, x_full: np.ndarray) -> sp.csr_matrix:
+        """Analytic sparse Jacobian (len(residuals), n_params_full)."""
+        _, Jcam, Jfr = self.blocks(x_full)
+        n_obs, n_w = Jcam.shape[:2]
+        rows = np.arange(n_obs * n_w * 2).reshape(n_obs, n_w, 2)
+        cam_cols = self.obs_cam[:, None] * N_CAM + np.arange(N_CAM)[None]
+        frame_cols = (self.n_cameras * N_CAM + self.obs_frame[:, None] * N_FRAME
+                      + np.arange(N_FRAME)[None])
+        r_idx = [np.broadcast_to(rows[..., None], (n_obs, n_w, 2, N_CAM)).ravel(),
+                 np.broadcast_to(rows[..., None], (n_obs, n_w, 2, N_FRAME)).ravel()]
+        c_idx = [np.broadcast_to(cam_cols[:, None, None, :], (n_obs, n_w, 2, N_CAM)).ravel(),
+                 np.broadcast_to(frame_cols[:, None, None, :], (n_obs, n_w, 2, N_FRAME)).ravel()]
+        vals = [Jcam.ravel(), Jfr.ravel()]
+        n_rows = n_obs * n_w * 2
+        if self.points is not None:
+            _, Jpc, Jpp = self.point_blocks(x_full, jac=True)
+            m = Jpc.shape[0]
+            prow = n_rows + np.arange(m * 2).reshape(m, 2)
+            pcam = self.points.camera[:, None] * N_CAM + np.arange(N_CAM)[None]
+            ppt = (self.n_cameras * N_CAM + self.n_frames * N_FRAME
+                   + self.points.point[:, None] * 3 + np.arange(3)[None])
+            r_idx += [np.broadcast_to(prow[..., None], (m, 2, N_CAM)).ravel(),
+                      np.broadcast_to(prow[..., None], (m, 2, 3)).ravel()]
+            c_idx += [np.broadcast_to(pcam[:, None, :], (m, 2, N_CAM)).ravel(),
+                      np.broadcast_to(ppt[:, None, :], (m, 2, 3)).ravel()]
+            vals += [Jpc.ravel(), Jpp.ravel()]
+            n_rows += 2 * m
+        n_par = self.free_mask().size
+        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(r_idx), np.concatenate(c_idx))),
+                             shape=(n_rows, n_par))
+
+    def point_blocks(self, x_full: np.ndarray, jac: bool = True):
+        """The static points' residuals (m, 2) px and Jacobian blocks: with respect to the
+        sighting's camera (m, 2, 13) and to its point (m, 2, 3); None without ``jac``."""
+        cams, _ = self.split(x_full)
+        pts = self.split_points(x_full)
+        ps = self.points
+        uv, Jc, JP = self._project_at(cams, ps.camera, pts[ps.point][:, None, :], jac)
+        r = uv[:, 0] - ps.uv
+        if not jac:
+            return r, None, None
+        return r, Jc[:, 0], JP[:, 0]
+
+    def blocks(self, x_full: np.ndarray):
+        """Residuals (n_obs, n_w, 2) px and the Jacobian's blocks: with respect to the
+        sighting's camera (n_obs, n_w, 2, 13) and to its frame (n_obs, n_w, 2, 5)."""
+        cams, frames = self.split(x_full)
+        uv, Jcam, JP = self._project(cams, frames, jac=True)
         # frame block: d P / d centre = I; d P / d (a, b) = s_k * d u / d (a, b)
+        n_w = self.n_w
         u_raw = self.u0 + frames[:, 3:4] * self.e1 + frames[:, 4:5] * self.e2
         nrm = np.linalg.norm(u_raw, axis=1, keepdims=True)
         u = u_raw / nrm
@@ -263,9 +327,24 @@ class WandProblem:
         dP[:, :, :, :3] = np.eye(3)
         dP[:, :, :, 3] = self.offsets[None, :, None] * du_da[:, None, :]
         dP[:, :, :, 4] = self.offsets[None, :, None] * du_db[:, None, :]
-        ARc = np.einsum("owij,ojk->owik", A, Rc)
-        Jfr = np.einsum("owij,owjk->owik", ARc, dP[self.obs_frame])  # (o, w, 2, 5)
+        Jfr = np.einsum("owij,owjk->owik", JP, dP[self.obs_frame])  # (o, w, 2, 5)
         return uv - self.obs_uv, Jcam, Jfr
+
+
+@dataclass(frozen=True)
+class PointSightings:
+    """Static points with known correspondence (a ``points`` take): each point one unknown
+    position, seen once by each camera that saw it.
+
+    camera, point : (m,) camera index and (local) point index of each sighting.
+    uv : (m, 2) observed pixels (raw, distorted).
+    n_points : how many points.
+    """
+
+    camera: np.ndarray
+    point: np.ndarray
+    uv: np.ndarray
+    n_points: int
 
 
 def _rvec_jacobian(rvec: np.ndarray) -> np.ndarray:
@@ -298,13 +377,19 @@ class BundleResult:
     success: bool
     message: str
     camera_covariance: np.ndarray | None = None
+    points: np.ndarray | None = None  # (n_points, 3) mm: the static points, when any
+    point_residuals: np.ndarray | None = None  # (n_point_sightings, 2) px
 
 
 def solve(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linear",
           f_scale: float = 1.0, max_nfev: int = 200) -> BundleResult:
-    """Minimise the reprojection error over the free parameters (camera 0's pose held)."""
+    """Minimise the reprojection error over the free parameters (camera 0's pose held), with
+    ``scipy.optimize.least_squares`` (the prior, when any, as extra residual rows; the loss
+    applies to each residual component here)."""
     free = problem.free_mask()
     base = x0_full.copy()
+    n_cam = problem.n_cameras * N_CAM
+    sw = None if problem.prior_weight is None else np.sqrt(problem.prior_weight.ravel())
 
     def full(x):
         out = base.copy()
@@ -312,19 +397,31 @@ def solve(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linear",
         return out
 
     def fun(x):
-        return problem.residuals(full(x))
+        xf = full(x)
+        r = problem.residuals(xf)
+        if sw is None:
+            return r
+        return np.concatenate([r, sw * (xf[:n_cam] - problem.prior_mean.ravel())])
 
     def jac(x):
-        return problem.jacobian(full(x))[:, free]
+        J = problem.jacobian(full(x))
+        if sw is not None:
+            P = sp.hstack([sp.diags(sw), sp.csr_matrix((n_cam, J.shape[1] - n_cam))])
+            J = sp.vstack([J, P]).tocsr()
+        return J[:, free]
 
     res = least_squares(fun, x0_full[free], jac=jac, method="trf", tr_solver="lsmr",
                         x_scale="jac", loss=loss, f_scale=f_scale, max_nfev=max_nfev,
                         xtol=1e-12, ftol=1e-12, gtol=1e-10)
     xf = full(res.x)
     cams, frames = problem.split(xf)
-    r = problem.residuals(xf).reshape(problem.obs_uv.shape)
+    r_all = problem.residuals(xf)
+    n_wand = problem.obs_uv.size
+    r = r_all[:n_wand].reshape(problem.obs_uv.shape)
+    pts = problem.split_points(xf).copy() if problem.points is not None else None
+    pr = r_all[n_wand:].reshape(-1, 2) if problem.points is not None else None
     return BundleResult(cams.copy(), frames.copy(), r, float(res.cost), int(res.nfev),
-                        bool(res.success), str(res.message))
+                        bool(res.success), str(res.message), None, pts, pr)
 
 
 def _loss_weights(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
@@ -343,55 +440,88 @@ def _loss_weights(z: np.ndarray, loss: str) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"bundle adjustment: expected loss linear, soft_l1, huber or cauchy, got {loss!r}")
 
 
+def _groups(problem: WandProblem, x: np.ndarray):
+    """The blocks eliminated by the Schur complement, each a dict: ``r`` residuals (o, k) px,
+    ``Jc`` (o, k, 13) and ``Jb`` (o, k, nb) Jacobians, ``cam`` (o,) and ``block`` (o,) indices,
+    ``n`` blocks of ``nb`` parameters, ``norm_axis``: how a sighting's residuals group into
+    markers for the loss. The wand's frames (nb 5) and, when any, the static points (nb 3)."""
+    r, Jc, Jf = problem.blocks(x)
+    n_obs, n_w = r.shape[:2]
+    out = [dict(r=r, Jc=Jc.reshape(n_obs, -1, N_CAM), Jb=Jf.reshape(n_obs, -1, N_FRAME),
+                cam=problem.obs_cam, block=problem.obs_frame, n=problem.n_frames, nb=N_FRAME)]
+    if problem.points is not None:
+        rp, Jpc, Jpp = problem.point_blocks(x)
+        out.append(dict(r=rp[:, None, :], Jc=Jpc, Jb=Jpp, cam=problem.points.camera,
+                        block=problem.points.point, n=problem.n_points, nb=3))
+    return out
+
+
 def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linear",
                 f_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
-    """Levenberg-Marquardt with the Schur complement over the frames (see module docstring).
+    """Levenberg-Marquardt with the Schur complement over the frames (see module docstring);
+    the static points (when any) are eliminated the same way, and the prior (when any) adds to
+    the cameras' block.
 
     The loss applies to each marker's squared residual norm (px^2) scaled by ``f_scale``.
     """
-    C, F = problem.n_cameras, problem.n_frames
-    oc, of = problem.obs_cam, problem.obs_frame
+    C = problem.n_cameras
     gauge = problem.held()
     x = x0_full.copy()
-    by_camera = [np.flatnonzero(oc == c) for c in range(C)]
+    n_cam = C * N_CAM
+    pm = None if problem.prior_weight is None else problem.prior_mean.ravel()
+    pw = None if problem.prior_weight is None else problem.prior_weight.ravel()
 
-    def cost_of(r):
-        z = np.sum(r**2, axis=-1) / f_scale**2
-        return 0.5 * f_scale**2 * float(np.sum(_loss_weights(z, loss)[0]))
+    def cost_of(groups, xx):
+        c = 0.0
+        for g in groups:
+            z = np.sum(g["r"] ** 2, axis=-1) / f_scale**2
+            c += 0.5 * f_scale**2 * float(np.sum(_loss_weights(z, loss)[0]))
+        return c + problem.prior_cost(xx[:n_cam].reshape(C, N_CAM))
 
-    r, Jc, Jf = problem.blocks(x)
-    cost = cost_of(r)
+    groups = _groups(problem, x)
+    cost = cost_of(groups, x)
     lam = 1e-4
     nfev = 1
     message = "maximum iterations reached"
     success = False
     for _ in range(max_iter):
-        z = np.sum(r**2, axis=-1) / f_scale**2
-        w = _loss_weights(z, loss)[1][..., None, None]  # (o, w, 1, 1)
-        # per sighting, the (w, a) rows stacked: batched matrix products (einsum's generic
-        # loop is about 8 x slower here), then summed per camera and per frame
-        n_obs = r.shape[0]
-        Jc2 = Jc.reshape(n_obs, -1, N_CAM)
-        Jf2 = Jf.reshape(n_obs, -1, N_FRAME)
-        Jcw_T = (Jc * w).reshape(n_obs, -1, N_CAM).transpose(0, 2, 1)
-        Jfw_T = (Jf * w).reshape(n_obs, -1, N_FRAME).transpose(0, 2, 1)
-        r2 = r.reshape(n_obs, -1, 1)
-        U, gc = _camera_normal(Jcw_T, Jc2, r2, by_camera)
-        V = _sum_by(of, Jfw_T @ Jf2, F)
-        gf = _sum_by(of, (Jfw_T @ r2)[..., 0], F)
-        Wfull = np.zeros((F, C, N_CAM, N_FRAME))
-        Wfull[of, oc] = Jcw_T @ Jf2
+        U = np.zeros((C, N_CAM, N_CAM))
+        gc = np.zeros((C, N_CAM))
+        parts = []
+        for g in groups:
+            z = np.sum(g["r"] ** 2, axis=-1) / f_scale**2
+            w = np.repeat(_loss_weights(z, loss)[1], 2, axis=-1)[..., None]  # (o, k, 1)
+            # per sighting, the rows stacked: batched matrix products, summed per camera/block
+            Jcw_T = (g["Jc"] * w).transpose(0, 2, 1)
+            Jbw_T = (g["Jb"] * w).transpose(0, 2, 1)
+            r2 = g["r"].reshape(g["r"].shape[0], -1, 1)
+            by_camera = [np.flatnonzero(g["cam"] == c) for c in range(C)]
+            Ug, gcg = _camera_normal(Jcw_T, g["Jc"], r2, by_camera)
+            U += Ug
+            gc += gcg
+            V = _sum_by(g["block"], Jbw_T @ g["Jb"], g["n"])
+            gb = _sum_by(g["block"], (Jbw_T @ r2)[..., 0], g["n"])
+            W = np.zeros((g["n"], C, N_CAM, g["nb"]))
+            W[g["block"], g["cam"]] = Jcw_T @ g["Jb"]
+            parts.append((V, gb, W, g["nb"]))
+        if pw is not None:
+            U += (np.eye(N_CAM)[None] * pw.reshape(C, N_CAM)[:, None, :])
+            gc += (pw * (x[:n_cam] - pm)).reshape(C, N_CAM)
         while True:
             Ud = U + lam * np.einsum("cii->ci", U)[..., None] * np.eye(N_CAM)
-            Vd = V + lam * np.einsum("fii->fi", V)[..., None] * np.eye(N_FRAME)
-            Vinv = np.linalg.inv(Vd + 1e-12 * np.eye(N_FRAME))
-            Y = Wfull @ Vinv[:, None]  # (F, C, 13, 5)
-            S = -_schur_product(Y, Wfull)
-            S[np.diag_indices(C * N_CAM)] += 0.0
+            S = np.zeros((n_cam, n_cam))
+            rhs = -gc.ravel()
+            elim = []
+            for V, gb, W, nb in parts:
+                Vd = V + lam * np.einsum("fii->fi", V)[..., None] * np.eye(nb)
+                Vinv = np.linalg.inv(Vd + 1e-12 * np.eye(nb))
+                Y = W @ Vinv[:, None]  # (n, C, 13, nb)
+                S -= _schur_product(Y, W)
+                rhs += np.einsum("fcik,fk->ci", Y, gb).ravel()
+                elim.append(Vinv)
             for c in range(C):
                 sl = slice(c * N_CAM, (c + 1) * N_CAM)
                 S[sl, sl] += Ud[c]
-            rhs = (-gc + np.einsum("fcik,fk->ci", Y, gf)).ravel()
             S[gauge, :] = 0.0
             S[:, gauge] = 0.0
             S[gauge, gauge] = 1.0
@@ -401,12 +531,15 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
-            df = np.einsum("fkl,fl->fk", Vinv,
-                           -gf - np.einsum("fcik,ci->fk", Wfull, dc.reshape(C, N_CAM)))
-            x_new = x + np.concatenate([dc, df.ravel()])
-            r_new, Jc_new, Jf_new = problem.blocks(x_new)
+            steps = [dc]
+            for (_, gb, W, _), Vinv in zip(parts, elim):
+                db = np.einsum("fkl,fl->fk", Vinv,
+                               -gb - np.einsum("fcik,ci->fk", W, dc.reshape(C, N_CAM)))
+                steps.append(db.ravel())
+            x_new = x + np.concatenate(steps)
+            groups_new = _groups(problem, x_new)
             nfev += 1
-            cost_new = cost_of(r_new)
+            cost_new = cost_of(groups_new, x_new)
             if np.isfinite(cost_new) and cost_new <= cost:
                 break
             lam *= 4.0
@@ -417,15 +550,21 @@ def solve_schur(problem: WandProblem, x0_full: np.ndarray, *, loss: str = "linea
             success = True
             break
         rel = (cost - cost_new) / max(cost, 1e-300)
-        x, r, Jc, Jf, cost = x_new, r_new, Jc_new, Jf_new, cost_new
+        x, groups, cost = x_new, groups_new, cost_new
         lam = max(lam / 5.0, 1e-9)
         if rel < tol:
             message = "cost converged"
             success = True
             break
     cams, frames = problem.split(x)
-    cov = _camera_covariance(problem, Jc, Jf, r, gauge)
-    return BundleResult(cams.copy(), frames.copy(), r, cost, nfev, success, message, cov)
+    cov = _camera_covariance(problem, groups, gauge)
+    points = None
+    point_residuals = None
+    if problem.points is not None:
+        points = problem.split_points(x).copy()
+        point_residuals = groups[1]["r"][:, 0, :]
+    return BundleResult(cams.copy(), frames.copy(), groups[0]["r"], cost, nfev, success, message,
+                        cov, points, point_residuals)
 
 
 def _camera_normal(JwT: np.ndarray, J: np.ndarray, r: np.ndarray, by_camera: list[np.ndarray]):
@@ -452,36 +591,42 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 
 
 def _schur_product(Y: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """sum_f Y[f] W[f]^T over frames, as one matrix product: Y, W (F, C, 13, 5) ->
+    """sum_f Y[f] W[f]^T over frames (or points), as one matrix product: Y, W (F, C, 13, nb) ->
     (C * 13, C * 13)."""
-    F, C = Y.shape[:2]
-    Yr = Y.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
-    Wr = W.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * N_FRAME)
+    F, C, _, nb = Y.shape
+    Yr = Y.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * nb)
+    Wr = W.transpose(1, 2, 0, 3).reshape(C * N_CAM, F * nb)
     return Yr @ Wr.T
 
 
-def _camera_covariance(problem: WandProblem, Jc, Jf, r, gauge) -> np.ndarray:
-    """Covariance of the cameras' free parameters at the solution (see BundleResult)."""
-    C, F = problem.n_cameras, problem.n_frames
-    oc, of = problem.obs_cam, problem.obs_frame
-    n_obs = r.shape[0]
-    Jc2 = Jc.reshape(n_obs, -1, N_CAM)
-    Jf2 = Jf.reshape(n_obs, -1, N_FRAME)
-    U = _sum_by(oc, Jc2.transpose(0, 2, 1) @ Jc2, C)
-    V = _sum_by(of, Jf2.transpose(0, 2, 1) @ Jf2, F)
-    Wfull = np.zeros((F, C, N_CAM, N_FRAME))
-    Wfull[of, oc] = Jc2.transpose(0, 2, 1) @ Jf2
-    Vinv = np.linalg.pinv(V)
-    Y = Wfull @ Vinv[:, None]
-    S = -_schur_product(Y, Wfull)
-    for c in range(C):
-        sl = slice(c * N_CAM, (c + 1) * N_CAM)
-        S[sl, sl] += U[c]
+def _camera_covariance(problem: WandProblem, groups, gauge) -> np.ndarray:
+    """Covariance of the cameras' free parameters at the solution (see BundleResult): the
+    Gauss-Newton normal matrix with the frames and points marginalised, plus the prior's
+    information, scaled by the residuals' variance."""
+    C = problem.n_cameras
+    n_cam = C * N_CAM
+    S = np.zeros((n_cam, n_cam))
+    sq, n_res, n_blockpar = 0.0, 0, 0
+    for g in groups:
+        J, Jb = g["Jc"], g["Jb"]
+        U = _sum_by(g["cam"], J.transpose(0, 2, 1) @ J, C)
+        V = _sum_by(g["block"], Jb.transpose(0, 2, 1) @ Jb, g["n"])
+        W = np.zeros((g["n"], C, N_CAM, g["nb"]))
+        W[g["block"], g["cam"]] = J.transpose(0, 2, 1) @ Jb
+        Y = W @ np.linalg.pinv(V)[:, None]
+        S -= _schur_product(Y, W)
+        for c in range(C):
+            sl = slice(c * N_CAM, (c + 1) * N_CAM)
+            S[sl, sl] += U[c]
+        sq += float(np.sum(g["r"] ** 2))
+        n_res += g["r"].size
+        n_blockpar += g["n"] * g["nb"]
+    if problem.prior_weight is not None:
+        S[np.diag_indices(n_cam)] += problem.prior_weight.ravel()
     free = ~gauge
-    n_free = int(free.sum()) + F * N_FRAME
-    dof = max(r.size - n_free, 1)
-    sigma2 = float(np.sum(r**2)) / dof
-    cov = np.zeros((C * N_CAM, C * N_CAM))
+    dof = max(n_res - int(free.sum()) - n_blockpar, 1)
+    sigma2 = sq / dof if problem.noise_px is None else problem.noise_px**2
+    cov = np.zeros((n_cam, n_cam))
     Sf = S[np.ix_(free, free)]
     d = np.sqrt(np.maximum(np.diag(Sf), 1e-300))  # Jacobi scaling: parameters span 1e-6 to 1e5
     try:

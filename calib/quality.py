@@ -111,3 +111,32 @@ def pose_agreement(a, b) -> dict:
                                                            / np.linalg.norm(ca)),
                             "rotation_sd_deg": float(np.degrees(np.sqrt(np.trace(S[:3, :3]))))}
     return out
+
+
+COVERAGE_GRID = (8, 8)  # cells across and down the image
+
+
+def coverage_share(uv: np.ndarray, width: int, height: int, grid=COVERAGE_GRID) -> float:
+    """Share of the image's ``grid`` cells (8 x 8) holding at least one of the points uv
+    (n, 2) px."""
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    if uv.size == 0:
+        return 0.0
+    i = np.clip((uv[:, 0] + 0.5) / width * grid[0], 0, grid[0] - 1).astype(int)
+    j = np.clip((uv[:, 1] + 0.5) / height * grid[1], 0, grid[1] - 1).astype(int)
+    return float(np.unique(j * grid[0] + i).size / (grid[0] * grid[1]))
+
+
+def predictive_sd(Jcam: np.ndarray, cam: np.ndarray, cov: np.ndarray | None) -> np.ndarray:
+    """Per image point, the sd (px, per axis) of its projection that the cameras' parameter
+    uncertainty implies: ``sqrt(trace(J S J^T) / 2)`` with J (n, k, 2, 13) the projection's
+    Jacobian with respect to its camera (n sightings of k points) and S its camera's 13 x 13
+    block of ``cov`` (the bundle adjustment's). Returns (n, k); zeros when cov is None."""
+    if cov is None or not np.all(np.isfinite(cov)):
+        return np.zeros(Jcam.shape[:2])
+    n_cam = cov.shape[0] // 13
+    blocks = np.stack([cov[c * 13:(c + 1) * 13, c * 13:(c + 1) * 13] for c in range(n_cam)])
+    JS = np.einsum("nkai,nij->nkaj", Jcam, blocks[cam])
+    var = np.einsum("nkaj,nkaj->nk", JS, Jcam) / 2.0
+    return np.sqrt(np.maximum(var, 0.0))

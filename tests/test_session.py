@@ -337,7 +337,7 @@ def test_unknown_take_kind(spec2d, tmp_path):
     with pytest.raises(
         SessionError,
         match=r"session\.toml: takes\[2\] \('rest'\)\.kind: unknown take kind \"calib\" "
-        r"\(expected wand \| ground \| rest \| response \| motion\)",
+        r"\(expected wand \| points \| ground \| rest \| response \| motion\)",
     ):
         load(spec2d, tmp_path)
 

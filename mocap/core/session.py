@@ -68,7 +68,7 @@ __all__ = [
 SCHEMA = "mocap-session/1"
 MANIFEST = "session.toml"
 MARKERS_FILE = "markers.csv"
-TAKE_KINDS = ("wand", "ground", "rest", "response", "motion")
+TAKE_KINDS = ("wand", "points", "ground", "rest", "response", "motion")
 COLUMNS_2D = ("frame", "camera", "x", "y")
 COLUMNS_3D = ("frame", "marker", "x", "y", "z")
 COMMAND_COLUMNS = ("time_s", "du", "command")
@@ -79,7 +79,8 @@ TIME_TOLERANCE_S = 1e-9
 """Frame ``f`` is driven by the last command row with ``time_s <= f / fps + TIME_TOLERANCE_S``."""
 
 _TOP_KEYS = ("schema", "name", "fps", "cameras", "wand", "ground", "dus", "takes")
-_CAMERA_KEYS = ("id", "width", "height", "focal_px")
+_CAMERA_KEYS = ("id", "width", "height", "focal_px", "principal_px", "distortion", "intrinsics")
+INTRINSICS_MODES = ("fixed", "refine")
 _WAND_KEYS = ("marker_offsets_mm",)
 _GROUND_KEYS = ("markers_mm",)
 _DU_KEYS = ("id", "name", "feedback")
@@ -135,13 +136,26 @@ class CameraInfo:
     id : unique camera id, as used in the take files' ``camera`` column.
     width, height : image size, px (positive integers).
     focal_px : nominal focal length from the lens spec, px (a starting guess within ~10 %),
-        or None when the manifest gives none.
+        or None when the manifest gives none; with ``principal_px`` or ``distortion`` it is part
+        of the prior intrinsics.
+    principal_px : (2,) prior principal point, px (top-left pixel's centre origin), or None.
+    distortion : (5,) prior Brown-Conrady ``k1 k2 p1 p2 k3`` (OpenCV's), or None.
+    intrinsics : "fixed" (priors used as given) or "refine" (the wand adjusts them; the default
+        when a prior is given); None when the camera has no prior intrinsics.
     """
 
     id: str
     width: int
     height: int
     focal_px: float | None
+    principal_px: tuple[float, float] | None = None
+    distortion: tuple[float, float, float, float, float] | None = None
+    intrinsics: str | None = None
+
+    @property
+    def has_prior(self) -> bool:
+        """True when the manifest gives prior intrinsics (a principal point or distortion)."""
+        return self.principal_px is not None or self.distortion is not None
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,7 +209,7 @@ class TakeInfo:
     Attributes
     ----------
     name : unique take name.
-    kind : one of ``wand``, ``ground``, ``rest``, ``response``, ``motion``.
+    kind : one of ``wand``, ``points``, ``ground``, ``rest``, ``response``, ``motion``.
     file : path of the take file (resolved against the session directory).
     commands : path of the commands file, or None.
     du : the driven DU's id (required for ``response`` takes), or None.
@@ -563,7 +577,37 @@ def _parse_cameras(doc, notes) -> tuple[CameraInfo, ...]:
         focal = _number(
             tbl, "focal_px", prefix, "a positive focal length, px", positive=True, required=False
         )
-        cameras.append(CameraInfo(id=cam_id, width=width, height=height, focal_px=focal))
+        principal = distortion = mode = None
+        if "principal_px" in tbl:
+            expected = "[cx, cy], the prior principal point, px"
+            principal = _float_array(tbl["principal_px"], prefix, "principal_px", expected, ndim=1)
+            if principal.size != 2:
+                raise SessionError(f"{MANIFEST}: {prefix}.principal_px: expected {expected}, got "
+                                   f"{_show(tbl['principal_px'])}")
+            principal = (float(principal[0]), float(principal[1]))
+        if "distortion" in tbl:
+            expected = "[k1, k2, p1, p2, k3], OpenCV's Brown-Conrady terms (4 or 5 numbers)"
+            d = _float_array(tbl["distortion"], prefix, "distortion", expected, ndim=1)
+            if d.size not in (4, 5):
+                raise SessionError(f"{MANIFEST}: {prefix}.distortion: expected {expected}, got "
+                                   f"{_show(tbl['distortion'])}")
+            distortion = tuple(float(v) for v in np.r_[d, 0.0][:5])
+        if "intrinsics" in tbl:
+            mode = tbl["intrinsics"]
+            if mode not in INTRINSICS_MODES:
+                raise SessionError(f"{MANIFEST}: {prefix}.intrinsics: expected \"fixed\" or "
+                                   f"\"refine\", got {_show(mode)}")
+            if principal is None and distortion is None:
+                raise SessionError(f"{MANIFEST}: {prefix}.intrinsics: {_show(mode)} needs prior "
+                                   "intrinsics: add principal_px and distortion (a lens profile), "
+                                   "or remove the key")
+        elif principal is not None or distortion is not None:
+            mode = "refine"
+        if mode is not None and focal is None:
+            raise SessionError(f"{MANIFEST}: {prefix}: prior intrinsics need focal_px too (the "
+                               "lens profile's focal length, px)")
+        cameras.append(CameraInfo(id=cam_id, width=width, height=height, focal_px=focal,
+                                  principal_px=principal, distortion=distortion, intrinsics=mode))
     return tuple(cameras)
 
 

@@ -13,10 +13,16 @@ Two layouts are read:
   point was not digitised. Their pixel origin is the bottom-left, 1-based as MATLAB's (DLTdv):
   ``x = X - 1``, ``y = height - Y`` (so the image height of every camera is needed). The two
   ends are written as two unlabeled blobs: which end is which is the calibration's business.
-- **camera profiles** (Argus / easyWand ``.txt``): one whitespace-separated row per camera,
-  ``camera focal_px width height cx cy model [k1 k2 t1 t2 k3]``. The focal length becomes the
-  session's ``focal_px`` starting guess; the rest is only checked (the calibration estimates
-  the intrinsics itself). Principal points in the profile use the same bottom-left origin.
+- **background points** (DLTdv / easyWand ``*xypts.csv`` of static points): the same columns;
+  every (row, point) digitised in a camera is one distinct static point, written as one frame
+  of a ``points`` take (frame ``row * n_points + k - 1``).
+- **camera profiles**: an Argus / easyWand profile (``.txt``, one row per camera,
+  ``camera focal_px width height cx cy aspect_ratio k1 k2 t1 t2 k3``), an aniposelib
+  ``calibration.toml`` or an OpenCV YAML (:mod:`mocap.calib.priors` reads them all). The
+  focal length, principal point and distortion become the session's prior intrinsics
+  (``focal_px``, ``principal_px``, ``distortion``, ``intrinsics = "refine"`` unless asked
+  ``"fixed"``); a profile of 6 columns (no distortion) gives the focal length only, as a
+  starting guess.
 
 The session written holds ``session.toml`` (cameras, ``[wand]``, no ``[ground]``: the world frame
 is then the first camera's) and ``takes/wand.csv``. Nothing is overwritten.
@@ -40,12 +46,17 @@ XYPTS = re.compile(r"^pt(\d+)_cam(\d+)_([XY])$", re.IGNORECASE)
 
 @dataclass(frozen=True)
 class CameraProfile:
-    """One camera of a profile file (px)."""
+    """One camera of a profile file (px): image size, focal length and, when the profile gives
+    them, the prior principal point (top-left origin) and distortion ``k1 k2 p1 p2 k3`` with
+    how the calibration uses them (``intrinsics``: "fixed" or "refine")."""
 
     id: str
     width: int
     height: int
     focal_px: float | None = None
+    principal_px: tuple[float, float] | None = None
+    distortion: tuple[float, ...] | None = None
+    intrinsics: str | None = None
 
 
 def is_blob_table(path: str | os.PathLike) -> bool:
@@ -140,35 +151,80 @@ def read_xypts(path: str | os.PathLike, heights: dict[str, int]) -> pd.DataFrame
     return out.sort_values(["frame", "camera"], kind="stable").reset_index(drop=True)
 
 
-def read_camera_profile(path: str | os.PathLike) -> list[CameraProfile]:
-    """An Argus / easyWand camera profile (see the module docstring)."""
+def read_camera_profile(path: str | os.PathLike, *, intrinsics: str = "refine"
+                        ) -> list[CameraProfile]:
+    """Cameras of a profile file (see the module docstring): an Argus / easyWand ``.txt``, an
+    aniposelib ``calibration.toml`` or an OpenCV ``.yml``/``.yaml``/``.xml``.
+
+    Raises ImportError_ naming the file and the row or key."""
+    from mocap.calib.priors import PriorFileError, read_priors
+
     path = Path(path)
+    try:
+        priors = read_priors(path, mode=intrinsics)
+    except PriorFileError as e:
+        raise ImportError_(str(e)) from None
     out = []
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.replace(",", " ").split()
-        try:
-            vals = [float(p) for p in parts]
-        except ValueError:
-            raise ImportError_(f"{path}: line {i}: expected numbers, got {line!r}") from None
-        if len(vals) < 6:
-            raise ImportError_(f"{path}: line {i}: expected camera, focal, width, height, cx, cy "
-                               f"[, model, k1, k2, t1, t2, k3]; got {len(vals)} values")
-        cam, f, w, h = vals[:4]
-        if f <= 0 or w <= 0 or h <= 0:
-            raise ImportError_(f"{path}: line {i}: focal length and image size must be positive")
-        out.append(CameraProfile(f"cam{int(cam)}", int(w), int(h), float(f)))
-    if not out:
-        raise ImportError_(f"{path}: no camera rows")
+    six = _profile_without_distortion(path)
+    for cid, p in priors.items():
+        if p.size is None:
+            raise ImportError_(f"{path}: camera {cid!r} has no image size (image_width and "
+                               "image_height); give --image-size instead")
+        w, h = p.size
+        if cid in six:  # focal length and principal point only: a starting guess
+            out.append(CameraProfile(cid, w, h, p.focal_px))
+        else:
+            out.append(CameraProfile(cid, w, h, p.focal_px, p.principal_px, p.distortion,
+                                     intrinsics))
     return out
+
+
+def _profile_without_distortion(path: Path) -> set[str]:
+    """Camera ids of a text profile's 6-column rows (no distortion columns)."""
+    if path.suffix.lower() in (".toml", ".yml", ".yaml", ".xml"):
+        return set()
+    out = set()
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        parts = [p for p in re.split(r"[\s,;]+", line.split("#", 1)[0].strip()) if p]
+        if len(parts) == 6:
+            out.add(f"cam{int(float(parts[0]))}")
+    return out
+
+
+def read_points_xypts(path: str | os.PathLike, heights: dict[str, int]) -> pd.DataFrame:
+    """A DLTdv / easyWand background-point ``xypts.csv`` as a ``points`` take: frame (one per
+    distinct point: ``row * n_points + k - 1``), camera, x, y (top-left origin, px)."""
+    path = Path(path)
+    if not is_xypts(path):
+        raise ImportError_(f"{path}: expected DLTdv columns pt<k>_cam<c>_X, pt<k>_cam<c>_Y")
+    df = pd.read_csv(path)
+    keys = [XYPTS.match(str(c).strip()) for c in df.columns]
+    n_pts = max(int(m.group(1)) for m in keys)
+    rows = []
+    for c in sorted({int(m.group(2)) for m in keys}):
+        cid = f"cam{c}"
+        if cid not in heights:
+            raise ImportError_(f"{path}: camera {c}: its image height is needed to move the "
+                               "bottom-left origin to the top-left (give --image-size or a profile)")
+        for k in range(1, n_pts + 1):
+            if f"pt{k}_cam{c}_X" not in df.columns:
+                continue
+            X = pd.to_numeric(df[f"pt{k}_cam{c}_X"], errors="coerce").to_numpy(float)
+            Y = pd.to_numeric(df[f"pt{k}_cam{c}_Y"], errors="coerce").to_numpy(float)
+            ok = np.flatnonzero(np.isfinite(X) & np.isfinite(Y))
+            rows.append(pd.DataFrame({"frame": ok * n_pts + k - 1, "camera": cid,
+                                      "x": X[ok] - 1.0, "y": heights[cid] - Y[ok]}))
+    out = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame()
+    if out.empty:
+        raise ImportError_(f"{path}: no digitised points")
+    return out.sort_values(["frame", "camera"], kind="stable").reset_index(drop=True)
 
 
 def write_wand_session(out: str | os.PathLike, blobs: pd.DataFrame, cameras: list[CameraProfile],
                        offsets_mm, *, fps: float = 100.0, name: str = "imported-wand",
-                       source: str = "") -> Path:
-    """Write a session of one ``wand`` take of unlabeled blobs; returns the session folder."""
+                       source: str = "", points: pd.DataFrame | None = None) -> Path:
+    """Write a session of one ``wand`` take of unlabeled blobs (and, given ``points``, a
+    ``points`` take of static points); returns the session folder."""
     out = Path(out)
     if (out / "session.toml").exists():
         raise ImportError_(f"{out}: already holds a session; choose a new folder")
@@ -177,6 +233,9 @@ def write_wand_session(out: str | os.PathLike, blobs: pd.DataFrame, cameras: lis
     if unknown:
         raise ImportError_(f"{source or 'blobs'}: cameras {unknown} have no image size "
                            f"(known: {sorted(ids)})")
+    if points is not None and sorted(set(points["camera"]) - ids):
+        raise ImportError_(f"static points: cameras {sorted(set(points['camera']) - ids)} have no "
+                           f"image size (known: {sorted(ids)})")
     offsets = [float(v) for v in offsets_mm]
     if len(offsets) < 2 or np.any(np.diff(offsets) <= 0):
         raise ImportError_(f"wand offsets: expected 2 or more increasing values, mm; got {offsets}")
@@ -188,8 +247,18 @@ def write_wand_session(out: str | os.PathLike, blobs: pd.DataFrame, cameras: lis
         lines += ["[[cameras]]", f'id = "{c.id}"', f"width = {c.width}", f"height = {c.height}"]
         if c.focal_px:
             lines.append(f"focal_px = {float(c.focal_px)!r}")
+        if c.principal_px is not None:
+            lines.append(f"principal_px = [{float(c.principal_px[0])!r}, "
+                         f"{float(c.principal_px[1])!r}]")
+        if c.distortion is not None:
+            lines.append("distortion = [" + ", ".join(repr(float(v)) for v in c.distortion) + "]")
+        if c.intrinsics is not None and (c.principal_px is not None or c.distortion is not None):
+            lines.append(f'intrinsics = "{c.intrinsics}"')
         lines.append("")
     lines += ["[wand]", f"marker_offsets_mm = {offsets}", "",
               "[[takes]]", 'name = "wand"', 'kind = "wand"', 'file = "takes/wand.csv"', ""]
+    if points is not None:
+        write_csv(points[["frame", "camera", "x", "y"]], out / "takes" / "points.csv", decimals=4)
+        lines += ["[[takes]]", 'name = "points"', 'kind = "points"', 'file = "takes/points.csv"', ""]
     write_text(out / "session.toml", "\n".join(lines))
     return out

@@ -25,7 +25,11 @@ Other labs' wand recordings become a session of unlabeled 2D blobs with one wand
 for 'mocap calibrate' (no ground square: the world frame is the first camera's): per-blob
 tables (frame, camera, x, y[, status, radius]: e.g. pyOpenLPT's wand points, whose Raw rows
 are taken) and DLTdv/easyWand/Argus xypts.csv files (bottom-left origin, NaN when unseen) with
-an Argus/easyWand camera profile or --image-size. --wand-offsets is required for them.
+a camera profile or --image-size. --wand-offsets is required for them. A profile (an
+Argus/easyWand profile .txt, an aniposelib calibration.toml or an OpenCV YAML) gives each
+camera's image size and its prior intrinsics (focal length, principal point, distortion),
+which 'mocap calibrate' refines (--intrinsics-mode fixed: uses them as given). --points adds
+static background points (a DLTdv/easyWand xypts.csv) as a points take.
 
 --align-commands proposes each take's commands_offset_s (the capture time of its command file's
 time 0, for command logs not started with the cameras): from --sync-channel (a C3D analog
@@ -43,6 +47,8 @@ examples:
   mocap import trial01.c3d trial02.c3d --out s3 --align-commands apply --sync-channel SYNC
   mocap import wand_points.csv --wand-offsets 0,660 --image-size 1280x800 --out sessions/lab_wand
   mocap import wand_xypts.csv --profile profile.txt --wand-offsets 0,660 --fps 100 --out s2
+  mocap import wand_xypts.csv --profile calibration.toml --points bkgd_xypts.csv \
+      --wand-offsets 0,660 --out s3
 """
 
 GUESSES_SHOWN = 40  # printed; all are in import_report.json
@@ -77,7 +83,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image-size", default=None,
                    help="wand recordings: every camera's image size WIDTHxHEIGHT, px")
     p.add_argument("--profile", type=Path, default=None,
-                   help="wand recordings: Argus/easyWand camera profile (focal, size per camera)")
+                   help="wand recordings: camera profile (Argus/easyWand .txt, aniposelib "
+                        "calibration.toml or OpenCV .yml): image size and prior intrinsics")
+    p.add_argument("--intrinsics-mode", choices=("refine", "fixed"), default="refine",
+                   help="wand recordings: the profile's intrinsics refined by the wand "
+                        "(default) or used as given")
+    p.add_argument("--points", type=Path, default=None,
+                   help="wand recordings: static background points, a DLTdv/easyWand xypts.csv")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -185,6 +197,7 @@ def _import_wand(args: argparse.Namespace) -> int:
         is_xypts,
         read_blob_table,
         read_camera_profile,
+        read_points_xypts,
         read_xypts,
         write_wand_session,
     )
@@ -203,7 +216,8 @@ def _import_wand(args: argparse.Namespace) -> int:
             size = (w, h)
         except ValueError:
             raise ImportError_(f"--image-size: expected WIDTHxHEIGHT, got {args.image_size!r}") from None
-    profile = read_camera_profile(args.profile) if args.profile else None
+    profile = (read_camera_profile(args.profile, intrinsics=args.intrinsics_mode)
+               if args.profile else None)
     if is_xypts(path):
         if profile is None and size is None:
             raise ImportError_(f"{path}: DLTdv points need each camera's image height: give "
@@ -218,11 +232,23 @@ def _import_wand(args: argparse.Namespace) -> int:
         if profile is None and size is None:
             raise ImportError_(f"{path}: give the cameras' image size (--image-size or --profile)")
         cams = profile or [CameraProfile(c, *size) for c in sorted(blobs["camera"].unique())]
+    points = None
+    if args.points is not None:
+        if not args.points.is_file():
+            raise ImportError_(f"--points: {args.points}: file not found")
+        points = read_points_xypts(args.points, {c.id: c.height for c in cams})
     root = write_wand_session(args.out, blobs, cams, offsets, fps=args.fps or 100.0,
-                              name=path.stem, source=str(path))
+                              name=path.stem, source=str(path), points=points)
     print(f"session written to {root}: one wand take of {len(blobs)} blobs from "
           f"{len(cams)} cameras ({', '.join(c.id for c in cams)}); no ground square, so "
           "'mocap calibrate' puts the world frame at the first camera")
+    with_prior = [c.id for c in cams if c.distortion is not None]
+    if with_prior:
+        print(f"  prior intrinsics ({args.intrinsics_mode}) from {args.profile.name} for "
+              f"{', '.join(with_prior)}")
+    if points is not None:
+        print(f"  static points: {points.frame.nunique()} points, {len(points)} sightings "
+              f"from {args.points.name}")
     if not args.fps:
         print("  note: no --fps given; 100 Hz assumed (only timing depends on it)")
     return 0
