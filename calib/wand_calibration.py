@@ -84,10 +84,6 @@ class CalibrationResult(Summarised):
     points_mm: np.ndarray | None = None  # (n_points, 3) fitted static points, first camera's frame
 
 
-OUTLIER_SD = 6.0  # a sighting is an outlier beyond this many sd of its predicted residual
-OUTLIER_FLOOR_PX = 0.6  # ... and beyond this many px (sub-pixel noise is never an outlier)
-PREDICTIVE_CAP = 3.0  # the model's predictive sd counts up to this many x the camera's noise
-
     def _summary(self) -> Summary:
         q = self.quality
         per_cam = q.get("reprojection_rms_px") or {}
@@ -103,6 +99,11 @@ PREDICTIVE_CAP = 3.0  # the model's predictive sd counts up to this many x the c
                                                    list(per_cam.items())[:12]) + " px"))
         return Summary(f"CalibrationResult: {len(self.rig)} cameras", tuple(lines),
                        more="attributes: .rig .quality .residuals_px .wand .ground")
+
+
+OUTLIER_SD = 6.0  # a sighting is an outlier beyond this many sd of its predicted residual
+OUTLIER_FLOOR_PX = 0.6  # ... and beyond this many px (sub-pixel noise is never an outlier)
+PREDICTIVE_CAP = 3.0  # the model's predictive sd counts up to this many x the camera's noise
 
 
 def select_frames(obs: WandObservations, max_frames: int = 3600, per_camera: int = 120) -> np.ndarray:
