@@ -163,9 +163,11 @@ def test_the_crashing_reader_test_prints_no_fatal_error_dump():
     """The test that crashes the C3D reader's child on purpose passes without the child's
     "Fatal Python error: Segmentation fault" and module list in the output (pytest enables
     faulthandler, which the forked child inherited)."""
+    # without the options the suite passes its xdist workers (PYTEST_ADDOPTS: --dist)
+    env = {k: v for k, v in os.environ.items() if k != "PYTEST_ADDOPTS"}
     proc = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:xdist", "-p", "no:cacheprovider",
                            "-q", "tests/test_import_errors.py", "-k", "crashing_c3d_reader"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+                          cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
     output = proc.stdout + proc.stderr
     assert proc.returncode == 0 and "1 passed" in output, output[-3000:]
     assert "Fatal Python error" not in output and "Extension modules" not in output, output[-3000:]

@@ -433,7 +433,8 @@ def test_marker_choice_and_errors(lag_face, tmp_path):
 def test_design_check_reports_the_floor_of_the_command_grid(plain_face, tmp_path, capsys):
     """--check on a face without actuator dynamics prints the grid's floor, and the played model
     design sits above it."""
-    model_file = save_model(plain_face.model, tmp_path / "plain.model")
+    model_file = save_model(plain_face.model, tmp_path / "plain.model",
+                            source=plain_face.root / "session")
     out = tmp_path / "smile_A.csv"
     assert main(["design", str(plain_face.root / "session"), "--plan", "A", "--dus", "1,7,12",
                  "--method", "model", "--model", str(model_file), "--check", "--out", str(out)]) == 0
