@@ -1,4 +1,5 @@
-"""The session loader (mocap.core.session) against the input contract, FORMAT.md.
+"""The session loader (mocap.core.session, manifest, session_files) against the input contract,
+FORMAT.md.
 
 Bad-input tests each break exactly one thing of a tiny valid session (session_builders) and
 check the SessionError names the file and the row (CSV line, header = line 1) or manifest key.
@@ -154,12 +155,12 @@ def test_unknown_take_name(spec2d, tmp_path):
 def test_commands_read_once_per_session_each_call_a_copy(spec2d, tmp_path, monkeypatch):
     import pickle
 
-    import mocap.core.session as ms
+    import mocap.core.session_files as files
 
     session = load(spec2d, tmp_path)
     reads = []
-    real = ms._read_commands
-    monkeypatch.setattr(ms, "_read_commands", lambda src, dus: reads.append(src) or real(src, dus))
+    real = files._read_commands
+    monkeypatch.setattr(files, "_read_commands", lambda src, dus: reads.append(src) or real(src, dus))
     first = session.read_commands("du04_t01")
     first.loc[:, "command"] = -1  # a caller's changes stay with its copy
     second = session.read_commands("du04_t01")

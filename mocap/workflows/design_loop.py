@@ -264,7 +264,7 @@ def check_take(take, model: FaceModel, ref, markers_w, say) -> None:
 def read_command_file(path, du_ids) -> pd.DataFrame:
     """A command file (time_s, du, command) checked by the session format's own reader; the DUs
     must be among ``du_ids``. SessionError naming the file and line."""
-    from mocap.core.session import _read_commands, _Source
+    from mocap.core.session_files import _read_commands, _Source
 
     p = Path(path)
     return _read_commands(_Source(p, str(p)), tuple(int(d) for d in du_ids))
@@ -295,7 +295,7 @@ def read_take_file(path, rows: pd.DataFrame, session_fps: float):
 
     p = Path(path)
     if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and _session_take_csv(p)):
-        from mocap.core.session import _read_take_3d, _Source
+        from mocap.core.session_files import _read_take_3d, _Source
         from mocap.reconstruction.labeled_input import dense_from_3d, marker_names_3d
 
         df = _read_take_3d(_Source(p, str(p)))
