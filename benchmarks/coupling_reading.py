@@ -3,8 +3,8 @@
 For each face: the sweep's small 4-DU session (20 markers, 3 trials, 0.03 mm, smile plans A and
 C, the pair takes of DUs 1 + 4 and 7 + 12), the base model fitted on all takes, and kappa read
 two ways on it: in travel along each marker's measured path where the multi-DU takes hold their
-DUs at full command (``model_fit.coupling_kappa``, the workflow's reading), and by refitting the
-scalar law in the model's drive y on the whole multi-DU takes (``model_fit.law_kappa``, the
+DUs at full command (``coupling.coupling_kappa``, the workflow's reading), and by refitting the
+scalar law in the model's drive y on the whole multi-DU takes (``coupling.law_kappa``, the
 reading before, now its fallback). Both against the simulator's kappa in travel
 (``truth.json`` ``coupling_travel_kappa``: the law's kappa on straight and bowed paths) and its
 law's kappa. Writes benchmarks/coupling_reading.md and .json.
@@ -33,7 +33,8 @@ def read_case(family: str, form: str, seed: int, effect: str = "coupling") -> di
     from mocap.analysis.discrepancy.workflow import DiscrepancySettings, fit_base, prepare
     from mocap.analysis.model.face_model import make_effects
     from mocap.analysis.model.effects import BASE
-    from mocap.analysis.model.fit import coupling_kappa, law_kappa, multi_du_takes
+    from mocap.analysis.model.coupling import coupling_kappa, law_kappa
+    from mocap.analysis.model.data import multi_du_takes
     from mocap.workflows.discrepancy.inputs import load_measured
     from mocap.simulate.truth import effect_parameters, realised_coupling_kappa
 

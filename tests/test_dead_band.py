@@ -109,7 +109,8 @@ def test_a_band_after_a_coupling_is_read_to_the_widths_the_fits_cannot_tell_apar
     value 9.48); the value is its centre."""
     from mocap.analysis.discrepancy.workflow import fit_base
     from mocap.analysis.model.effects import UniformCouplingLaw
-    from mocap.analysis.model.fit import fit_curves, profile_effect
+    from mocap.analysis.model.fit import fit_curves
+    from mocap.analysis.model.profiles import profile_effect
     from mocap.simulate import preset, simulate
 
     cfg = preset("small", seed=2, labeled=True, n_markers=20, labeled_noise_mm=0.03,
@@ -142,7 +143,7 @@ def test_a_band_the_folds_read_flat_is_reported_over_their_hull():
 
     from mocap.analysis.discrepancy.workflow import fold_hull
     from mocap.analysis.model.effects import Lag
-    from mocap.analysis.model.fit import Profile
+    from mocap.analysis.model.profiles import Profile
 
     @dataclass(frozen=True)
     class Model:  # the two members fold_hull uses
@@ -172,7 +173,7 @@ def test_a_band_whose_widths_that_fit_alike_reach_zero_is_not_supported():
     """The whole session's plateau reaching a band of 0 (3.28 in 0-6.56 on a face with a play
     of 12 after its coupling) does not support the band; a plateau above 0, or none, does."""
     from mocap.analysis.discrepancy.workflow import reaches_null
-    from mocap.analysis.model.fit import Profile
+    from mocap.analysis.model.profiles import Profile
 
     def prof(interval):
         return Profile([0.0, 3.0], [1.0, 1.0], 3.28, None, 10, interval=interval)

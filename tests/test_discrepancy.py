@@ -19,7 +19,9 @@ from mocap.analysis.model.face_model import FaceModel
 from mocap.analysis.model.hysteresis import play
 from mocap.analysis.paper.hysteresis_fit import pi_logistic
 from mocap.analysis.model.effects import CANDIDATES, CATALOGUE, Effect, summarize_schedules
-from mocap.analysis.model.fit import ModelData, TakeData, fit_curves, profile_effect
+from mocap.analysis.model.data import ModelData, TakeData
+from mocap.analysis.model.fit import fit_curves
+from mocap.analysis.model.profiles import profile_effect
 from mocap.analysis.model.play_kernel import pi_logistic_from_table, play_table
 from mocap.workflows.discrepancy.inputs import load_measured
 from mocap.core.schedules import identification_battery, trapezoid

@@ -34,7 +34,7 @@ from mocap.analysis.discrepancy.workflow import (
     run_discrepancy,
 )
 from mocap.analysis.model.face_model import make_effects
-from mocap.analysis.model.fit import coupling_kappa, travel_path
+from mocap.analysis.model.coupling import coupling_kappa, travel_path
 from mocap.analysis.model.effects import BASE
 from mocap.workflows.discrepancy.inputs import load_measured
 from mocap.simulate.effects import make_effect
@@ -343,7 +343,8 @@ def test_multi_du_take_shifts_are_the_faces_not_the_couplings(tmp_path):
     drawn ones, which are within +-3), and the alternation with the pair vectors did not bring
     them back. Fitted again from 0 as well, the better start kept (measured: within 2.3)."""
     from mocap.analysis.model.effects import UniformCouplingLaw
-    from mocap.analysis.model.fit import fit_curves, multi_du_takes
+    from mocap.analysis.model.data import multi_du_takes
+    from mocap.analysis.model.fit import fit_curves
 
     root = make_session(tmp_path, seed=5, du_ids=(1, 7, 12), n_markers=10, n_trials=3,
                         labeled=True, labeled_noise_mm=0.03, motion_plans=("A", "C"),

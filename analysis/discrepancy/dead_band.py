@@ -39,7 +39,8 @@ import numpy as np
 
 from mocap.analysis.model.face_model import FaceModel
 from mocap.analysis.model.effects import Backlash
-from mocap.analysis.model.fit import ModelData, fit_curves, sse
+from mocap.analysis.model.data import ModelData
+from mocap.analysis.model.fit import fit_curves, sse
 
 EDGE_POWER = 3.0  # the rise's shape near its onset (the interval: 4 and 2)
 EDGE_STEP = 2.0  # command units between the forced plays of the profile (1.0 moved the onset by

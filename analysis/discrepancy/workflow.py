@@ -36,7 +36,7 @@ name the missing effect, add it, show the gap shrink.
 7. Report held-out residuals before and after each step, per DU and marker, in mm and relative
    to the noise floor.
 
-Pure computations on :class:`mocap.analysis.model.fit.ModelData`; I/O is in :mod:`mocap.workflows.discrepancy.results`.
+Pure computations on :class:`mocap.analysis.model.data.ModelData`; I/O is in :mod:`mocap.workflows.discrepancy.results`.
 """
 
 from __future__ import annotations
@@ -58,15 +58,9 @@ from mocap.analysis.model.effects import (
     command_moves,
     summarize_schedules,
 )
-from mocap.analysis.model.fit import (
-    ModelData,
-    TakeData,
-    fit_curves,
-    profile_effect,
-    profile_uncertainty,
-    sse,
-    take_residual,
-)
+from mocap.analysis.model.data import ModelData, TakeData
+from mocap.analysis.model.fit import fit_curves, sse, take_residual
+from mocap.analysis.model.profiles import profile_effect, profile_uncertainty
 
 PHASES = ("rest", "hold", "rise-fast", "rise", "rise-slow", "fall-fast", "fall", "fall-slow",
           "reversal")
@@ -933,7 +927,7 @@ def fold_hull(prof, cls, fold_intervals: list):
     (:attr:`CVFit.intervals`): the whole session's minimum then wins by less than the folds
     disagree, and the widths the data allow are the hull of the folds' intervals and that
     minimum. Returns ``prof`` with that interval, its centre as the value (the model's band set
-    to it, as :func:`mocap.analysis.model.fit.profile_effect` does for a plateau) and the
+    to it, as :func:`mocap.analysis.model.profiles.profile_effect` does for a plateau) and the
     interval's width as its resolution; ``prof`` unchanged otherwise. Example: a Preisach face
     with straight paths, a coupling and a stick-slip band of 12, after the coupling: all takes
     prefer 7.0 by less than the fits' reproducibility, the folds are flat over 6.56-12.51 and
@@ -1298,7 +1292,7 @@ READINGS = {
 
 def parameter_reading(name: str, model: FaceModel) -> str:
     """How the step's parameter was read where the data, not the fit, give it: the coupling's
-    kappa (:func:`mocap.analysis.model.fit.coupling_kappa`, its weighting in
+    kappa (:func:`mocap.analysis.model.coupling.coupling_kappa`, its weighting in
     ``model.info["coupling_law"]``); "" otherwise."""
     if name != "coupling":
         return ""

@@ -1,4 +1,4 @@
-"""Compiled inner terms of the curve fits' Levenberg-Marquardt step (:mod:`mocap.analysis.model.fit`).
+"""Compiled inner terms of the curve fits' Levenberg-Marquardt step (:mod:`mocap.analysis.model.curves`).
 
 The step needs, per sample and curve, the residual's and the path tangent's products with the
 tangent g = d pred / d y = D + sum_k b_k'(y) B_k: g . e and g . g. In NumPy that materialises

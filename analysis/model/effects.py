@@ -64,7 +64,7 @@ class Effect:
     fine_grid: ClassVar[bool] = False  # a time shift: resolved to the fine time grid at best
     command_grid: ClassVar[bool] = False  # a dead band: resolved to half a command step at best
     continuation: ClassVar[bool] = False  # profile warm-started from the nearest value tried
-    #                                        (a rough profile: model_fit.profile_effect)
+    #                                        (a rough profile: profiles.profile_effect)
     min_plausible: ClassVar[float] = 0.0  # |value| below this is no effect at all
     affects_curves: ClassVar[bool] = True  # False: single-DU takes do not depend on the value,
     #                                         so the curves are fitted once for its profile
@@ -302,7 +302,7 @@ class CouplingLaw(Coupling):
     worse than the two together). One global parameter (profiled, the curves held: single-DU takes do not
     depend on it), the pair vectors refitted at each value; kappa is reported as
     :class:`Coupling`'s, read from the data in travel along the paths
-    (:func:`mocap.analysis.model.fit.coupling_kappa`), not the law's share of the fit."""
+    (:func:`mocap.analysis.model.coupling.coupling_kappa`), not the law's share of the fit."""
 
     meaning: ClassVar[str] = ("DUs share skin: each DU's drive loses kappa x the others' drives "
                               "(weighted by their relative pull at the marker) before it moves "

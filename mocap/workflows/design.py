@@ -65,7 +65,8 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
     """
     from mocap.analysis.discrepancy.workflow import DiscrepancySettings, prepare, run_discrepancy
     from mocap.analysis.model.effects import CATALOGUE
-    from mocap.analysis.model.fit import fit_curves, profile_effect
+    from mocap.analysis.model.fit import fit_curves
+    from mocap.analysis.model.profiles import profile_effect
     from mocap.workflows.discrepancy.inputs import load_measured
 
     say = progress or (lambda m: None)

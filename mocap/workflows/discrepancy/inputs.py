@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mocap.analysis.model.fit import TakeData
+from mocap.analysis.model.data import TakeData
 from mocap.reconstruction.labeled_input import dense_from_3d, marker_names_3d
 from mocap.core.session import Session, SessionError, load_session
 
