@@ -30,7 +30,9 @@ CASES = ("boucwen-bow:model:3,boucwen-bow:alt2:8,boucwen-offchord:alt2:2,boucwen
 
 
 def read_case(family: str, form: str, seed: int, effect: str = "coupling") -> dict:
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings, fit_base, prepare
+    from mocap.analysis.discrepancy.crossval import fit_base
+    from mocap.analysis.discrepancy.prepare import prepare
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
     from mocap.analysis.model.face_model import make_effects
     from mocap.analysis.model.effects import BASE
     from mocap.analysis.model.coupling import coupling_kappa, law_kappa

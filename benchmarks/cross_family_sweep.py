@@ -156,7 +156,7 @@ def _drift_errors(row: dict, realised: float) -> dict:
 
 def run_case(family: str, effect: str, seed: int, root: Path, local: bool | None = None,
              form: str | None = None) -> dict:
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
     from mocap.workflows.discrepancy.results import run
 
     form = form or seed_form(seed)

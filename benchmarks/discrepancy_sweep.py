@@ -25,7 +25,7 @@ CASES = ["none", "lag", "deadtime", "backlash", "coupling", "drift", "saturation
 
 
 def run_case(case: str, seed: int, root: Path, jobs: int) -> dict:
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
     from mocap.workflows.discrepancy.results import run
     from mocap.simulate import preset, simulate
     from mocap.simulate.effects import make_effect

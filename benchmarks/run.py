@@ -359,7 +359,7 @@ def stage_run() -> dict:
 
 def stage_discrepancy() -> dict:
     """``mocap discrepancy`` on the paper run's output (no hidden effect: names nothing)."""
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
     from mocap.workflows.discrepancy.results import run
     from mocap.outputs.discrepancy import WRITERS
 

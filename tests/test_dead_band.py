@@ -26,16 +26,10 @@ from conftest import make_session
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mocap.analysis.discrepancy.workflow import (
-    DiscrepancySettings,
-    candidate_evidence,
-    cv_base,
-    cv_candidate,
-    effective_n,
-    heldout,
-    passes,
-    prepare,
-)
+from mocap.analysis.discrepancy.crossval import cv_base, cv_candidate, effective_n, heldout
+from mocap.analysis.discrepancy.prepare import prepare
+from mocap.analysis.discrepancy.rules import candidate_evidence, passes
+from mocap.analysis.discrepancy.settings import DiscrepancySettings
 from mocap.analysis.model.face_model import make_effects
 from mocap.analysis.model.effects import BASE, StickSlipBacklash
 from mocap.analysis.model.play_kernel import stick_slip
@@ -107,7 +101,7 @@ def test_a_band_after_a_coupling_is_read_to_the_widths_the_fits_cannot_tell_apar
     no interval. Read to the fits' reproducibility, the interval holds the truth and is no wider
     than a command step (the rows a single-DU trapezoid tells apart; measured 6.5-12.47, the
     value 9.48); the value is its centre."""
-    from mocap.analysis.discrepancy.workflow import fit_base
+    from mocap.analysis.discrepancy.crossval import fit_base
     from mocap.analysis.model.effects import UniformCouplingLaw
     from mocap.analysis.model.fit import fit_curves
     from mocap.analysis.model.profiles import profile_effect
@@ -141,7 +135,7 @@ def test_a_band_the_folds_read_flat_is_reported_over_their_hull():
     effect not read on command rows, or folds without intervals are left as they are."""
     from dataclasses import dataclass
 
-    from mocap.analysis.discrepancy.workflow import fold_hull
+    from mocap.analysis.discrepancy.rules import fold_hull
     from mocap.analysis.model.effects import Lag
     from mocap.analysis.model.profiles import Profile
 
@@ -172,7 +166,7 @@ def test_a_band_the_folds_read_flat_is_reported_over_their_hull():
 def test_a_band_whose_widths_that_fit_alike_reach_zero_is_not_supported():
     """The whole session's plateau reaching a band of 0 (3.28 in 0-6.56 on a face with a play
     of 12 after its coupling) does not support the band; a plateau above 0, or none, does."""
-    from mocap.analysis.discrepancy.workflow import reaches_null
+    from mocap.analysis.discrepancy.rules import reaches_null
     from mocap.analysis.model.profiles import Profile
 
     def prof(interval):
@@ -206,7 +200,7 @@ def test_the_band_is_read_where_the_simulators_band_holds(dead_band_face):
     markers that DU moves: the same samples as where the simulator's own stick-slip equation
     (mocap.simulate.effects_alt, a second implementation) moves the actuator off the command,
     with each take's half-width the one of the fold model that predicts it."""
-    from mocap.analysis.discrepancy.workflow import hold_gain
+    from mocap.analysis.discrepancy.crossval import hold_gain
     from mocap.analysis.model.face_model import OVERSAMPLE
     from mocap.core.schedules import sample_commands
 
@@ -307,7 +301,7 @@ def test_onset_reads_where_a_flat_profile_turns_up_whatever_the_sessions_size():
 
 
 def _edge_case(root, effect):
-    from mocap.analysis.discrepancy.workflow import fit_base
+    from mocap.analysis.discrepancy.crossval import fit_base
 
     extra = {} if effect is None else {"effect": effect}
     make_session(root, seed=3, du_ids=(1, 7), n_markers=10, n_trials=3, labeled=True,
@@ -327,7 +321,7 @@ def test_a_backlash_the_base_absorbed_is_named_at_the_edge(tmp_path_factory):
     within 20 % of the truth, each DU's own onset too where its takes determine it (on this
     2-DU session they may not: tests/test_discrepancy.py checks them on a 4-DU one), the
     skin-dead-band alternative beside it, and the held-out takes predicted no worse."""
-    from mocap.analysis.discrepancy.workflow import dead_band_step
+    from mocap.analysis.discrepancy.dead_band import dead_band_step
 
     truth, prep, whole = _edge_case(tmp_path_factory.mktemp("edge_bl"), make_effect("backlash"))
     base = cv_base(prep.data, make_effects(BASE))
@@ -353,7 +347,8 @@ def test_a_band_is_named_when_one_fold_extrapolates_a_minor_loop(tmp_path):
     more than every other take gains. Judged on the total alone the band was rejected (the total
     held-out SSE 20 % worse; 7 takes better by more than 1 %, 3 worse); judged also on the median take it is named,
     within 20 % of the simulator's truth."""
-    from mocap.analysis.discrepancy.workflow import dead_band_step, fit_base
+    from mocap.analysis.discrepancy.crossval import fit_base
+    from mocap.analysis.discrepancy.dead_band import dead_band_step
     from mocap.simulate import preset, simulate
 
     cfg = preset("small", seed=3, labeled=True, n_markers=20, labeled_noise_mm=0.03,

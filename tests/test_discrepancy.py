@@ -14,7 +14,9 @@ import pandas as pd
 import pytest
 from conftest import make_session
 
-from mocap.analysis.discrepancy.workflow import DiscrepancySettings, prepare, run_discrepancy, trial_noise
+from mocap.analysis.discrepancy.prepare import prepare, trial_noise
+from mocap.analysis.discrepancy.settings import DiscrepancySettings
+from mocap.analysis.discrepancy.workflow import run_discrepancy
 from mocap.analysis.model.face_model import FaceModel
 from mocap.analysis.model.hysteresis import play
 from mocap.analysis.paper.hysteresis_fit import pi_logistic
@@ -421,7 +423,7 @@ def test_drift_interval_covers_the_generating_trend():
     battery's takes in trial 1, shifts scattered with SD 2 about the trend. Over 400 draws the
     interval holds the generating slope 91-99 % of the time (binomial 3 sd about 95 %); a
     plain +-1 standard error would hold it about 68 % of the time."""
-    from mocap.analysis.discrepancy.workflow import shift_trend, trend_interval
+    from mocap.analysis.discrepancy.drift import shift_trend, trend_interval
 
     rng = np.random.default_rng(7)
     k, hits, narrow = 4.0, 0, 0

@@ -20,19 +20,19 @@ import numpy as np
 import pytest
 from conftest import make_session
 
-from mocap.analysis.discrepancy.workflow import (
-    DiscrepancySettings,
+from mocap.analysis.discrepancy.crossval import (
     cv_base,
     cv_candidate,
-    drift_step,
     effective_n,
     fit_base,
     heldout,
     n_parameters,
-    parameter_reading,
-    prepare,
-    run_discrepancy,
 )
+from mocap.analysis.discrepancy.drift import drift_step
+from mocap.analysis.discrepancy.prepare import prepare
+from mocap.analysis.discrepancy.report import parameter_reading
+from mocap.analysis.discrepancy.settings import DiscrepancySettings
+from mocap.analysis.discrepancy.workflow import run_discrepancy
 from mocap.analysis.model.face_model import make_effects
 from mocap.analysis.model.coupling import coupling_kappa, travel_path
 from mocap.analysis.model.effects import BASE
@@ -315,7 +315,7 @@ def test_base_fits_in_the_pool_equal_those_in_this_process(tmp_path_factory):
     """With workers (jobs > 1) the workflow fits the base on each fold and on all takes side by
     side in its pool, handed back while they fit (Futures: the candidates' screens start once
     the folds are done): the same model as fitted in this process."""
-    from mocap.analysis.discrepancy.workflow import _Runner, fit_base, fold_takes
+    from mocap.analysis.discrepancy.crossval import _Runner, fit_base, fold_takes
 
     root, _ = _session(tmp_path_factory, "pi-bow", "none")
     data = _prepared(root).data

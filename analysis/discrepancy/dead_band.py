@@ -29,16 +29,23 @@ level reads later where fewer reversals carry the band, and a likelihood-ratio b
 fit's own convergence wobble (a few tenths of a mm^2 over about 2.5e5 effective residuals) for
 evidence. The interval is the onset fitted
 with the exponents 4 and 2: how far the reading moves with the shape.
+
+:func:`dead_band_step` is the workflow's step (:mod:`mocap.analysis.discrepancy.workflow`): the
+edge read on all takes, the model with the play at the edge scored on the held-out folds, and
+the backlash named with its alternative, a dead band in the skin's hysteresis.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from mocap.analysis.discrepancy.crossval import CVFit, fold_takes, heldout, local_gain, take_sse
+from mocap.analysis.discrepancy.result import Step
 from mocap.analysis.model.face_model import FaceModel
-from mocap.analysis.model.effects import Backlash
+from mocap.analysis.model.effects import CATALOGUE, Backlash
 from mocap.analysis.model.data import ModelData
 from mocap.analysis.model.fit import fit_curves, sse
 
@@ -154,3 +161,133 @@ def dead_band_edge(data: ModelData, model: FaceModel, takes,
     below = max(i for i, (h, _) in enumerate(points) if h <= edge)
     at = fit_curves(data, others + (Backlash(edge),), takes, warm=models[below], iters=30)
     return DeadBandEdge(edge, (min(lo, edge), max(hi, edge)), flat, tuple(points), at)
+
+
+# ----------------------------------------------------------------------------------------------
+# the workflow's dead-band step
+
+
+def dead_band_alternative(halfwidth: float, model: FaceModel, form: str = "play") -> dict:
+    """What a named backlash could also be: a dead band in the skin's own hysteresis. A play
+    in the actuator followed by the skin's plays is one operator with wider plays, so the takes
+    cannot say where the band sits; the base's loops hold what a density can, and the band is
+    what they could not. Reported beside the naming, never instead of it."""
+    width = model.loop_width()
+    loops = {int(d): round(float(np.median(width[n][model.active[n]])), 2)
+             for n, d in enumerate(model.du_ids) if model.active[n].any()}
+    return {"effects": ["backlash", "hysteresis dead band"],
+            "evidence": {"halfwidth": round(float(halfwidth), 3), "form": form,
+                         "loop_width": loops},
+            "reason": (f"after every reversal the face holds for about {2 * halfwidth:.1f} command "
+                       "units: a dead band in the actuator (named: backlash) or in the skin's "
+                       "own hysteresis (a branch play, relays that all need a push to switch) "
+                       "fit alike; a take that moves the actuator without the skin (or a "
+                       "position sensor on it) would tell them apart")}
+
+
+DEAD_BAND_READING = ("the widest play before the skin's hysteresis that the takes allow: a play "
+                     "forced wider than the face's dead band stops motion the takes show, and the "
+                     "fit degrades at once (the edge of its profile); narrower, the skin's play "
+                     "density holds the rest of the band")
+
+
+def dead_band_step(data: ModelData, model: FaceModel, current: CVFit, floor: float, say):
+    """A backlash the base's hysteresis absorbed, read as the edge of a forced play's profile
+    (:func:`dead_band_edge`) on all takes, before ``model`` (the final model, fitted on
+    all takes; ``current`` its two fold fits). Named when the edge is at least
+    ``Backlash.min_plausible`` and half the takes' command step (a band narrower than one step
+    still moves the response at the first step after a reversal), and the model with the play
+    at the edge, walked up to it on each fold from the fold's model, predicts the held-out fold
+    no worse (within :data:`EDGE_HELDOUT_SLACK`) than the fold's model polished at 0 (its final
+    polish only: the walk's extra iterations at the narrower plays are not repeated at 0), in
+    total or on the median take. The total alone is one take's verdict when a fold has not seen
+    a DU's minor loop: both fold models extrapolate that loop poorly, and whichever does worse
+    outweighs every other take; the median take's ratio is not swayed by it. A play the face
+    has not got stops motion after every reversal, in every take.
+    Returns (Step or None, its CVFit, the alternative, the model with the play, the evidence
+    item or None where the step did not apply)."""
+    cls = CATALOGUE["backlash"]
+    if not model.hysteresis or any(type(e).name == "backlash" for e in model.effects):
+        return None, None, None, None, None
+    t0 = time.perf_counter()
+    all_takes = list(range(len(data.takes)))
+    step_c = data.command_step
+    threshold = max(cls.min_plausible, 0.5 * step_c)
+    edge = dead_band_edge(data, model, all_takes, screen=threshold)
+    item = {"effect": "backlash", "testable": True, "dead_band_edge": True,
+            "halfwidth": round(edge.halfwidth, 4) if edge.bounded else None,
+            "interval": [round(v, 4) for v in edge.interval] if edge.bounded else None,
+            "threshold": round(threshold, 4), "command_step": round(step_c, 4),
+            "profile": [[round(h, 3), round(v, 4)] for h, v in edge.profile],
+            "heldout_rms_mm": current.rms_mm, "score": 0.0, "explained": 0.0}
+    say(f"  backlash edge {'screened out' if edge.screened else f'{edge.halfwidth:.2f}'} "
+        f"(threshold {threshold:.2f} command units; {len(edge.profile)} forced plays, "
+        f"{time.perf_counter() - t0:.1f} s)")
+    if edge.screened:
+        (_, s0), (_, s1) = edge.profile
+        item["reason"] = (f"a play of {threshold:.3g} command units costs {100 * (s1 / s0 - 1):.0f} % "
+                          "of the fit: some DU moves within a command step of a reversal, no "
+                          f"dead band of a command step ({step_c:.3g})")
+        return None, None, None, None, item
+    if not edge.bounded or edge.halfwidth < threshold:
+        item["reason"] = ("the takes do not bound a forced play" if not edge.bounded else
+                          f"every DU moves within {2 * edge.halfwidth:.1f} command units of a "
+                          f"reversal: no dead band of a command step ({step_c:.3g})")
+        return None, None, None, None, item
+    others = tuple(e for e in model.effects if type(e).name != "backlash")
+    models, nulls = [], []
+    for f in (0, 1):
+        tk = fold_takes(data, f)
+        models.append(walk(data, others, tk, current.models[f], edge.halfwidth))
+        nulls.append(walk(data, others, tk, current.models[f], 0.0))
+    s, n, res = heldout(data, models)
+    s0, n0, res0 = heldout(data, nulls)
+    cv = CVFit(models, s, n, [edge.halfwidth] * 2, cls, local_gain(res0, res, data.used, floor),
+               [list(edge.interval)] * 2, residuals=res, null=CVFit(nulls, s0, n0, residuals=res0))
+    with_play, without = take_sse(res, data.used), take_sse(res0, data.used)
+    ratio = with_play / without
+    median_ratio = float(np.nanmedian(ratio))
+    k = int(np.argmax(with_play - without))
+    item.update(heldout_rms_mm=cv.rms_mm, null_heldout_rms_mm=cv.null.rms_mm,
+                explained=float((s0 - s) / s0), takes_median_ratio=round(median_ratio, 4),
+                takes_worse=int(np.sum(ratio > 1.0 + EDGE_HELDOUT_SLACK)),
+                takes_better=int(np.sum(ratio < 1.0 - EDGE_HELDOUT_SLACK)),
+                most_worse_take={"take": data.takes[k].name,
+                                 "sse_mm2": [round(float(without[k]), 3),
+                                             round(float(with_play[k]), 3)]})
+    if s > s0 * (1.0 + EDGE_HELDOUT_SLACK) and median_ratio > 1.0 + EDGE_HELDOUT_SLACK:
+        item["reason"] = (f"the model with a play of {edge.halfwidth:.2f} predicts the held-out "
+                          f"takes worse ({cv.rms_mm:.4f} mm against {cv.null.rms_mm:.4f} mm; "
+                          f"the median take's SSE x {median_ratio:.3f})")
+        return None, None, None, None, item
+    h = edge.halfwidth
+    lo, hi = edge.interval
+    # each DU's own band: the onset on its single-DU takes (a robot's actuators may differ),
+    # where they determine it to half a command step (on the PI face with a band of 12, DUs 1
+    # and 12 read 12.75 in 10.4-15.05 and 14.0 in 13.55-14.45; DU 4, whose wide loops let the
+    # density give back much of a wider band, rose softly from 12 to 29 and read 6.25 in 0.2-12)
+    per_du = {}
+    for du in data.du_ids:
+        own = [k for k, t in enumerate(data.takes) if t.dus == (du,)]
+        if own:
+            e_du = dead_band_edge(data, model, own)
+            if e_du.bounded and e_du.interval[1] - e_du.interval[0] <= 0.5 * step_c:
+                per_du[int(du)] = e_du.halfwidth
+    step = Step("backlash", {cls.parameter: h}, {cls.parameter: 0.5 * (hi - lo)},
+                current.rms_mm, cv.rms_mm, [item], 0.0, per_du, form=cls.form,
+                meaning=cls.meaning, reading=DEAD_BAND_READING,
+                interval={cls.parameter: [float(lo), float(hi)]})
+    alt = dead_band_alternative(h, edge.model, cls.form)
+    alt["reason"] = (f"every DU holds for about {2 * h:.1f} command units after its reversals "
+                     f"(a play forced wider degrades the fit at once; profile in the evidence): "
+                     "a dead band in the actuators (named: backlash) or in the skin's own "
+                     "hysteresis (relays that all need a push of that much to switch) fit alike, "
+                     "and the base held it in its play density; the step names the actuator "
+                     "because an elastic skin moves at once after a reversal. A take that moves "
+                     "the actuator without the skin (or a position sensor on it) would tell them "
+                     "apart")
+    return step, cv, alt, edge.model, item
+
+
+EDGE_HELDOUT_SLACK = 0.01  # the held-out SSE with the play may exceed its null's by this fraction (at
+#                            the edge the training fit has begun to lose: 0.5 % per command unit)

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.analysis.discrepancy.workflow import PHASES, DiscrepancyResult, Prepared, worst_marker
+from mocap.analysis.discrepancy.prepare import PHASES, Prepared
+from mocap.analysis.discrepancy.report import worst_marker
+from mocap.analysis.discrepancy.result import DiscrepancyResult
 from mocap.workflows.discrepancy.results import DiscrepancyWriters
 
 __all__ = ["write_figures", "write_recording", "WRITERS"]

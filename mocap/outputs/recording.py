@@ -350,7 +350,7 @@ def write_discrepancy_recording(path: str | os.PathLike, res, data, session_name
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from mocap.analysis.discrepancy.workflow import worst_marker
+    from mocap.analysis.discrepancy.report import worst_marker
 
     fps = float(data.fps)
     names = list(data.marker_names)

@@ -63,7 +63,9 @@ def identify_model(path, effects=None, jobs: int = 1, progress=None) -> tuple[Fa
 
     Returns (model, how it was identified).
     """
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings, prepare, run_discrepancy
+    from mocap.analysis.discrepancy.prepare import prepare
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
+    from mocap.analysis.discrepancy.workflow import run_discrepancy
     from mocap.analysis.model.effects import CATALOGUE
     from mocap.analysis.model.fit import fit_curves
     from mocap.analysis.model.profiles import profile_effect

@@ -54,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mocap.analysis.discrepancy.workflow import DiscrepancySettings
+    from mocap.analysis.discrepancy.settings import DiscrepancySettings
     from mocap.analysis.model.effects import CATALOGUE
     from mocap.workflows.discrepancy.results import run as run_workflow
     from mocap.outputs.discrepancy import WRITERS

@@ -13,14 +13,10 @@ from typing import Callable
 
 import numpy as np
 
-from mocap.analysis.discrepancy.workflow import (
-    PHASES,
-    DiscrepancyResult,
-    DiscrepancySettings,
-    Prepared,
-    prepare,
-    run_discrepancy,
-)
+from mocap.analysis.discrepancy.prepare import PHASES, Prepared, prepare
+from mocap.analysis.discrepancy.result import DiscrepancyResult
+from mocap.analysis.discrepancy.settings import DiscrepancySettings
+from mocap.analysis.discrepancy.workflow import run_discrepancy
 from mocap.analysis.model.effects import CATALOGUE
 from mocap.core.atomic import write_text
 from mocap.workflows.discrepancy.inputs import load_measured
