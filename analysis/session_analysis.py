@@ -71,7 +71,7 @@ class Analysis(Summarised):
     fields_mm : DU -> (M, 3) mean displacement at full command (mm); motions : the motion takes
     evaluated against their plans (``evaluate_plan_take``), added by the composer; paper : DU ->
     its PaperIndices (the paper's recipe, ``mocap.analysis.paper.indices``); trials : the
-    trials analysed (``mocap.workflows.run.pipeline.Trials``: averages, responses, rejections), set by the
+    trials analysed (``mocap.workflows.run.result.Trials``: averages, responses, rejections), set by the
     composer.
     """
 
@@ -84,7 +84,7 @@ class Analysis(Summarised):
     fields_mm: Mapping[int, np.ndarray]
     motions: tuple[MotionResult, ...] = ()
     paper: Mapping | None = None  # du -> PaperIndices (the paper's recipe, mocap.analysis.paper.indices)
-    trials: object | None = None  # mocap.workflows.run.pipeline.Trials
+    trials: object | None = None  # mocap.workflows.run.result.Trials
 
     @property
     def rejections(self) -> pd.DataFrame | None:

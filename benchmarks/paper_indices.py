@@ -195,7 +195,8 @@ def main() -> None:
                     help="also measure the corrected dyssynchrony's draw-to-draw scatter per DU "
                          "(this many noise draws on the noise-free trials)")
     args = ap.parse_args()
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
 
     run_s = None
     if not (args.out / "summary.json").exists():

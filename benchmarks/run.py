@@ -206,7 +206,7 @@ def stage_peer() -> dict:
 def stage_reconstruct() -> dict:
     """Correspondence + triangulation + labeling of every face take of the paper session."""
     from mocap.calib.wand_calibration import calibrate_session
-    from mocap.workflows.run.pipeline import reconstruct
+    from mocap.workflows.run.stages import reconstruct
     from mocap.core.session import load_session
 
     session = load_session(CACHE / "session")

@@ -23,11 +23,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mocap.workflows.run.pipeline import Analysis, RunResult
-from mocap.workflows.run.pipeline import analyze as _analyze
-from mocap.workflows.run.pipeline import calibrate as _calibrate
-from mocap.workflows.run.pipeline import reconstruct as _reconstruct
+from mocap.analysis.session_analysis import Analysis
 from mocap.workflows.run.pipeline import run as _run
+from mocap.workflows.run.result import RunResult
+from mocap.workflows.run.stages import analyze as _analyze
+from mocap.workflows.run.stages import calibrate as _calibrate
+from mocap.workflows.run.stages import reconstruct as _reconstruct
 from mocap.reconstruction.takes import Reconstruction
 from mocap.outputs.run_writers import WRITERS
 from mocap.workflows.run.settings import RunSettings, with_values

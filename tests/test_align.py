@@ -57,7 +57,8 @@ def sessions(tmp_path_factory):
 def runs(sessions, tmp_path_factory):
     """RunResults of the unshifted and the offset session (full analyses), and of the shifted
     one without its offset (audit only)."""
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
 
     out = tmp_path_factory.mktemp("align_runs")
     full = RunSettings(bootstrap_samples=20, recording=False, jobs=1)
@@ -324,7 +325,8 @@ def test_write_offsets_keeps_every_other_line(tmp_path):
 def test_a_changed_offset_is_not_served_from_the_run_cache(sessions, tmp_path):
     """The offset is part of the stages' keys: editing it recomputes the trials and the audit,
     and reuses the reconstruction (the take files did not change)."""
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
 
     d = tmp_path / "s"
     shutil.copytree(sessions[1], d)

@@ -7,7 +7,8 @@ import json
 import pytest
 
 from conftest import make_session
-from mocap.workflows.run.pipeline import RunSettings, run_session
+from mocap.workflows.run.pipeline import run_session
+from mocap.workflows.run.settings import RunSettings
 
 
 def flagged(audit):

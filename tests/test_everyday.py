@@ -120,8 +120,8 @@ def test_every_command_writes_files_the_umask_allows(tiny_sim, tmp_path, mask, c
 FORCE_WORKERS = """\
 import os
 os.cpu_count = lambda: 2
-import mocap.workflows.run.pipeline, mocap.outputs.run_writers
-mocap.workflows.run.pipeline.PARALLEL_MIN_BYTES = 0
+import mocap.workflows.run.stages, mocap.outputs.run_writers
+mocap.workflows.run.stages.PARALLEL_MIN_BYTES = 0
 mocap.outputs.run_writers.PARALLEL_MIN_FIGURES = 1
 """
 
@@ -210,11 +210,12 @@ def test_analyze_returns_the_type_a_run_holds(tiny_sim, tiny_result):
     import numpy as np
 
     import mocap
+    from mocap.analysis.session_analysis import Analysis
 
     r = tiny_result
     a = mocap.analyze(r.session, r.reconstruction, bootstrap_samples=0)
     assert type(a) is type(r.analysis) and type(a).__name__ == "Analysis"
-    assert mocap.workflows.run.pipeline.Analysis is type(a)
+    assert Analysis is type(a)
     np.testing.assert_array_equal(a.properties["sensitivity"].to_numpy(float),
                                   r.analysis.properties["sensitivity"].to_numpy(float))
     assert a.rejections.equals(r.rejections) and r.analysis.rejections.equals(r.rejections)

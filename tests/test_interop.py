@@ -130,7 +130,8 @@ def test_import_cli_reports_what_to_complete(tmp_path, capsys):
 @pytest.mark.parametrize("name", ["vicon_nexus24_markers_emg.c3d", "qualisys_qtm217_forceplates.c3d",
                                   "ndi_optotrak_30hz.c3d"])
 def test_real_c3d_files_import_audit_and_reexport(tmp_path, name):
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
 
     src = REALDATA / name
     orig = read_c3d(src)

@@ -593,7 +593,8 @@ def test_delta_noise_variance_matches_the_realised_error_at_rest():
 def test_session_analysis_on_threads_equals_one_thread(small_sim, small_run):
     """analyze_session's DUs on two threads give the same tables as one at a time (each DU's
     bootstraps draw from their own seeded generator; the rows keep the DUs' order)."""
-    from mocap.workflows.run.pipeline import RunSettings, analyze_session
+    from mocap.workflows.run.settings import RunSettings
+    from mocap.workflows.run.stages import analyze_session
     from mocap.core.session import load_session
 
     session = load_session(small_sim / "session")

@@ -181,12 +181,12 @@ def test_worker_processes_give_the_in_process_result(tiny_sim, monkeypatch):
     """Takes reconstructed by spawned workers (forced here: the tiny session is below the size
     where workers pay, ``PARALLEL_MIN_BYTES``) equal the in-process reconstruction."""
     import mocap
-    import mocap.workflows.run.pipeline as pipeline
+    import mocap.workflows.run.stages as stages
 
     session = mocap.load_session(tiny_sim / "session")
     calibration = mocap.calibrate(session)
     serial = mocap.reconstruct(session, calibration, jobs=1)
-    monkeypatch.setattr(pipeline, "PARALLEL_MIN_BYTES", 0)
+    monkeypatch.setattr(stages, "PARALLEL_MIN_BYTES", 0)
     parallel = mocap.reconstruct(session, calibration, jobs=2)
     assert list(parallel.takes) == list(serial.takes)
     for name, take in serial.takes.items():
@@ -201,13 +201,13 @@ def test_a_damaged_take_stops_a_parallel_reconstruction_with_its_file_named(
     import shutil
 
     import mocap
-    import mocap.workflows.run.pipeline as pipeline
+    import mocap.workflows.run.stages as stages
     from mocap.core.session import SessionError
 
     root = tmp_path / "session"
     shutil.copytree(tiny_sim / "session", root)
     session = mocap.load_session(root)
-    face = [t for t in session.takes if t.kind in pipeline.FACE_KINDS]
+    face = [t for t in session.takes if t.kind in stages.FACE_KINDS]
     bad = face[len(face) // 2]
     df = pd.read_parquet(bad.file) if str(bad.file).endswith(".parquet") else pd.read_csv(bad.file)
     df.loc[len(df) // 2, "camera"] = "no-such-camera"
@@ -216,7 +216,7 @@ def test_a_damaged_take_stops_a_parallel_reconstruction_with_its_file_named(
     else:
         df.to_csv(bad.file, index=False)
     calibration = mocap.calibrate(mocap.load_session(root))
-    monkeypatch.setattr(pipeline, "PARALLEL_MIN_BYTES", 0)
+    monkeypatch.setattr(stages, "PARALLEL_MIN_BYTES", 0)
     for jobs in (1, 2):
         with pytest.raises(SessionError, match="no-such-camera") as err:
             mocap.reconstruct(mocap.load_session(root), calibration, jobs=jobs)

@@ -129,6 +129,7 @@ def test_run_failing_after_the_reconstruction_leaves_no_recording(tiny_sim, tmp_
                                                                    monkeypatch):
     import mocap.workflows.run.pipeline as pipeline
     from mocap.outputs.run_writers import WRITERS
+    from mocap.workflows.run.settings import RunSettings
 
     def fail(*args, **kwargs):
         raise RuntimeError("analysis failed on purpose")
@@ -137,7 +138,7 @@ def test_run_failing_after_the_reconstruction_leaves_no_recording(tiny_sim, tmp_
     out = tmp_path / "out"
     with pytest.raises(RuntimeError, match="on purpose"):
         pipeline.run_session(tiny_sim / "session", out,
-                             settings=pipeline.RunSettings(jobs=1), writers=WRITERS)
+                             settings=RunSettings(jobs=1), writers=WRITERS)
     _no_recording_left(out)
     assert len(list((out / "trajectories").glob("*.parquet"))) > 0  # the takes are kept
 

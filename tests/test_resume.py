@@ -69,7 +69,8 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
     summary = json.loads((copy_of_run / "summary.json").read_text())
     assert summary["computed"] == [] and "audit" in summary["reused"]
     # the library call reads the reused results back, each take when asked for
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
     from mocap.reconstruction.takes import LazyTakes
     from mocap.outputs.run_writers import WRITERS
 
@@ -89,7 +90,8 @@ def test_unchanged_rerun_reuses_everything(tiny_sim, tiny_run, copy_of_run, caps
 def test_a_rerun_that_adds_figures_does_not_reuse_stages_written_without(tiny_sim, copy_of_run):
     """The writers are part of the stage keys: a data-only library run recomputes the stages
     whose files differ (analyze, audit) and draws nothing; adding the writers back redraws."""
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
     from mocap.outputs.run_writers import WRITERS
 
     settings = RunSettings(jobs=1, recording=False)

@@ -589,7 +589,8 @@ def test_simulating_a_session_loads_no_analysis_module(tmp_path):
             "labeled=True, motion_plans=('A',), face_family='preisach-bow', "
             "effect=make_effect('lag,coupling', form='alt')), sys.argv[1]); "
             "print(sorted(m for m in sys.modules if m.startswith(('mocap.analysis', "
-            "'mocap.reconstruction', 'mocap.workflows.run.pipeline'))))")
+            "'mocap.reconstruction', 'mocap.workflows.run.pipeline', "
+            "'mocap.workflows.run.stages'))))")
     r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "s")], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr

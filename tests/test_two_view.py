@@ -17,7 +17,8 @@ import pandas as pd
 import pytest
 
 from conftest import make_session
-from mocap.workflows.run.pipeline import RunSettings, run_session
+from mocap.workflows.run.pipeline import run_session
+from mocap.workflows.run.settings import RunSettings
 from mocap.reconstruction.camera_count import below_min_cameras, usable_positions
 from mocap.reconstruction.correspondence import Points3D, reconstruct_points
 from mocap.reconstruction.labeling import LabeledTake, TakeStats, label_take

@@ -1,6 +1,6 @@
 """The Rerun recording of a run: the only module that imports ``rerun``.
 
-``write_recording(path, result)`` turns a :class:`mocap.workflows.run.pipeline.RunResult` (read only) into a ``.rrd`` file
+``write_recording(path, result)`` turns a :class:`mocap.workflows.run.result.RunResult` (read only) into a ``.rrd`` file
 (written to a temporary name, then renamed). It uses an explicit ``RecordingStream`` and Rerun's
 columnar ``send_columns`` for every series (no Python loop per frame). What it holds, on the
 capture's own timelines ``frame`` (sequence) and ``time`` (seconds; each take starts at 0):
@@ -150,7 +150,7 @@ class RecordingWriter:
 
     def finish(self, result) -> Path:
         """Add the trials', analyses' and audit's parts of ``result`` (a complete
-        :class:`mocap.workflows.run.pipeline.RunResult`), close the recording and commit it; return its path."""
+        :class:`mocap.workflows.run.result.RunResult`), close the recording and commit it; return its path."""
         import rerun as rr
 
         self._join()

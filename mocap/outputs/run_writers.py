@@ -1,5 +1,5 @@
 """The run's figures and Rerun recording (outputs layer): the writers ``mocap run`` passes to
-the composer (:class:`mocap.workflows.run.pipeline.RunWriters`).
+the composer (:class:`mocap.workflows.run.result.RunWriters`).
 
 The composer (a workflow) computes and writes data files; drawing (matplotlib, in
 :mod:`mocap.outputs.figures`) and recording (rerun, in :mod:`mocap.outputs.recording`) sit above it
@@ -18,7 +18,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mocap.workflows.run.pipeline import RunWriters, Trials, progress_bar
+from mocap.workflows.run.result import RunWriters, Trials
+from mocap.workflows.run.stages import progress_bar
 from mocap.reconstruction.takes import Reconstruction
 from mocap.core.session import Session
 

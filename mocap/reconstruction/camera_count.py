@@ -4,7 +4,7 @@ The reconstruction keeps every point two or more cameras see (a marker only two 
 still in the trajectories, with ``n_cameras`` 2 and its residual, so the audit can name it); the
 analyses (trial averages, noise floor, responses, properties, linearity) take only the samples
 with ``n_cameras >= min_cameras``. The run applies it where the analyses read a take
-(``mocap.workflows.run.pipeline``: trial averages, the rest take's noise floor, motion takes); the
+(``mocap.workflows.run.stages``: trial averages, the rest take's noise floor, motion takes); the
 reconstruction, the trajectories, the audit and the recording keep every sample.
 
 Samples with ``n_cameras`` 0 are left as they are: gap samples filled by interpolation, and

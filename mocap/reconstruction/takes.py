@@ -3,8 +3,9 @@
 ``reconstruct_take`` turns one raw take (its blob table) into a :class:`TakeReconstruction`
 (labeled trajectories, counts, capture statistics for the audit and, on request, each blob's
 role for the recording); ``labeled_take`` does the same for a labeled 3D take. Both are pure:
-the composer (:mod:`mocap.workflows.run.pipeline`) reads the files, runs takes in parallel and writes and
-caches the results. :class:`Reconstruction` gathers a session's takes.
+the run's stages (:mod:`mocap.workflows.run.stages`) read the files and run takes in parallel,
+the composer (:mod:`mocap.workflows.run.pipeline`) writes and caches the results.
+:class:`Reconstruction` gathers a session's takes.
 
 Shapes: ``n_frames`` (frames of the take), ``n_markers`` (the session's markers),
 ``n_cameras`` (the rig's cameras), ``n_blobs`` (rows of the take's blob table). Units: mm, px.

@@ -21,10 +21,12 @@ from mocap.core.atomic import write_text
 
 def _run_one(session_dir: str, out_dir: str, writers=None) -> dict:
     """Worker side: one session, the pipeline's summary or the error (never raises).
-    ``writers``: the run's ``mocap.workflows.run.pipeline.RunWriters`` (None: data files only)."""
+    ``writers``: the run's ``mocap.workflows.run.result.RunWriters`` (None: data files only)."""
     import dataclasses
 
-    from mocap.workflows.run.pipeline import RunSettings, RunWriters, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.result import RunWriters
+    from mocap.workflows.run.settings import RunSettings
 
     t0 = time.perf_counter()
     try:
@@ -54,7 +56,7 @@ def run_batch(sessions, root, *, scheduler: str | None = None, workers: int | No
               progress: Callable[[str], None] | None = None, writers=None) -> dict:
     """Run every session; return (and write to ROOT/batch.json) the per-session outcomes.
 
-    writers : each run's figure and recording writers (``mocap.workflows.run.pipeline.RunWriters``; ``mocap
+    writers : each run's figure and recording writers (``mocap.workflows.run.result.RunWriters``; ``mocap
         batch`` passes ``mocap.outputs.run_writers.WRITERS``, whose module-level functions pickle by
         reference to the workers); None: data files only.
     """

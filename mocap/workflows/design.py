@@ -35,7 +35,8 @@ def paper_responses(source, dus, progress=None) -> dict:
     if props_path.is_file():
         props = pd.read_csv(props_path).set_index("du")
     else:
-        from mocap.workflows.run.pipeline import RunSettings, run_session
+        from mocap.workflows.run.pipeline import run_session
+        from mocap.workflows.run.settings import RunSettings
 
         with tempfile.TemporaryDirectory(prefix="mocap-design-") as work:
             if progress:

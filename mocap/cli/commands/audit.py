@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mocap.calib.wand_calibration import CalibrationError
     from mocap.core.paths import check_output_path
-    from mocap.workflows.run.pipeline import RunSettings, run_session
+    from mocap.workflows.run.pipeline import run_session
+    from mocap.workflows.run.settings import RunSettings
     from mocap.workflows.run.lock import OutputInUse
     from mocap.outputs.run_writers import WRITERS
     from mocap.core.session import SessionError

@@ -74,7 +74,8 @@ def load_measured(path: str | Path, work_dir: str | Path | None = None,
             files = None
             source = f"labeled takes of {path}"
         else:
-            from mocap.workflows.run.pipeline import RunSettings, run_session
+            from mocap.workflows.run.pipeline import run_session
+            from mocap.workflows.run.settings import RunSettings
 
             if work_dir is None:
                 raise ValueError("a raw (2D) session needs a work_dir for its reconstruction")
