@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +69,8 @@ class IntrinsicPrior:
     mode : "fixed" or "refine".
     size : (width, height) px the prior was measured at, or None when the file does not say.
     source : where it came from (a file name or ``session.toml``), for the report.
+    distortion_given : False where the file gave no distortion (a 6-column Argus / easyWand
+        row: focal length and principal point only), so ``distortion`` is zeros by default.
     """
 
     camera_id: str
@@ -78,6 +80,7 @@ class IntrinsicPrior:
     mode: str = "refine"
     size: tuple[int, int] | None = None
     source: str = ""
+    distortion_given: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in PRIOR_MODES:
@@ -87,8 +90,7 @@ class IntrinsicPrior:
                              f"{self.focal_px}")
 
     def with_mode(self, mode: str) -> "IntrinsicPrior":
-        return IntrinsicPrior(self.camera_id, self.focal_px, self.principal_px, self.distortion,
-                              mode, self.size, self.source)
+        return replace(self, mode=mode)
 
     def vector(self) -> np.ndarray:
         """(7,) f, cx, cy, k1, k2, p1, p2 as the bundle adjustment orders them."""
@@ -232,7 +234,7 @@ def _read_profile(path: Path, mode: str) -> dict[str, IntrinsicPrior]:
         if cid in out:
             raise PriorFileError(f"{where}: camera {int(cam)} given twice")
         out[cid] = IntrinsicPrior(cid, f, (cx - 1.0, h - cy), (k1, k2, -t1, t2, k3), mode,
-                                  (int(w), int(h)), path.name)
+                                  (int(w), int(h)), path.name, distortion_given=len(v) == 12)
     if not out:
         raise PriorFileError(f"{path}: no camera rows")
     return out

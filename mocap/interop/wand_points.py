@@ -165,29 +165,16 @@ def read_camera_profile(path: str | os.PathLike, *, intrinsics: str = "refine"
     except PriorFileError as e:
         raise ImportError_(str(e)) from None
     out = []
-    six = _profile_without_distortion(path)
     for cid, p in priors.items():
         if p.size is None:
             raise ImportError_(f"{path}: camera {cid!r} has no image size (image_width and "
                                "image_height); give --image-size instead")
         w, h = p.size
-        if cid in six:  # focal length and principal point only: a starting guess
+        if not p.distortion_given:  # focal length and principal point only: a starting guess
             out.append(CameraProfile(cid, w, h, p.focal_px))
         else:
             out.append(CameraProfile(cid, w, h, p.focal_px, p.principal_px, p.distortion,
                                      intrinsics))
-    return out
-
-
-def _profile_without_distortion(path: Path) -> set[str]:
-    """Camera ids of a text profile's 6-column rows (no distortion columns)."""
-    if path.suffix.lower() in (".toml", ".yml", ".yaml", ".xml"):
-        return set()
-    out = set()
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        parts = [p for p in re.split(r"[\s,;]+", line.split("#", 1)[0].strip()) if p]
-        if len(parts) == 6:
-            out.add(f"cam{int(float(parts[0]))}")
     return out
 
 
