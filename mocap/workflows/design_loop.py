@@ -35,11 +35,8 @@ TAKE_SUFFIXES = (".c3d", ".csv", ".tsv", ".parquet")
 
 def file_sha256(path) -> str:
     """SHA-256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _session_dir(source) -> Path:
